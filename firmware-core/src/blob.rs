@@ -1,0 +1,454 @@
+//! Flash-ready weight blobs: a postcard header, a 4-byte-aligned little-endian payload and a
+//! CRC-32, read in place (zero-copy) from `&[u8]`.
+//!
+//! ## Byte layout (format version 1)
+//!
+//! | offset | size | field |
+//! |---|---|---|
+//! | 0 | 4 | magic `b"OVTK"` (`4F 56 54 4B`) |
+//! | 4 | 2 | format version, u16 little-endian (1) |
+//! | 6 | 2 | header length `H` in bytes, u16 little-endian |
+//! | 8 | `H` | [`BlobHeader`], postcard-encoded (see below) |
+//! | 8 + `H` | `P` | zero bytes, `P` ∈ 0..=3, so the payload offset `O = 8 + H + P` is a multiple of 4 |
+//! | `O` | `N` | payload: `N = header.payload_len` bytes of weights |
+//! | `O + N` | 4 | CRC-32/ISO-HDLC (zlib's `crc32`) of bytes `0 .. O + N`, u32 little-endian |
+//!
+//! Bytes after `O + N + 4` are ignored (a flash partition may be larger than its blob). The
+//! blob itself must start on a 4-byte boundary so the payload can be read as `f32` in place.
+//!
+//! ## Header (postcard 1.x wire format)
+//! Fields in this order; integers are varints (u16/u32/u64: LEB128; there are no signed
+//! fields), `f32` is 4 bytes little-endian, enums are a varint variant index, a `Vec` or
+//! `String` is a varint length then its items, a struct is its fields in order.
+//! 1. `architecture`: `obs_dim` u16, `lstm_layers` u8 (one raw byte), `lstm_hidden` u16,
+//!    `mlp_hidden` Vec<u16> (≤ 6), `action_dim` u8, `activation` enum {0: Tanh}.
+//! 2. `observation`: `version` u16, `layout` enum {0: TimeTrial17, 1: OpponentPosition20,
+//!    2: FullOpponent30}, then seven f32: gate position scale (m), velocity scale (m/s), body
+//!    rate scale (rad/s), opponent position (m), velocity (m/s) and rate (rad/s) scales, clip.
+//! 3. `action_map`: `hover_rpm` f32, `gain` f32 (rpm = hover · (1 + gain · a)).
+//! 4. `control_period_ns` u32 (20,000,000 for 50 Hz).
+//! 5. `dtype` enum {0: F32}.
+//! 6. `provenance`: `name` String (≤ 32 bytes UTF-8), `seed` u64, `iterations` u32,
+//!    `preset` String (≤ 16), `config_hash` u64.
+//! 7. `payload_len` u32 (bytes).
+//!
+//! ## Payload (dtype F32)
+//! `payload_len / 4` little-endian IEEE-754 f32, tensor after tensor in the order of
+//! [`Architecture::tensors`]: for each LSTM layer `weight_ih [4H][in]`, `weight_hh [4H][H]`,
+//! `bias_ih + bias_hh [4H]` (gate rows i, f, g, o); then for each MLP layer, the output layer
+//! last, `weight [out][in]`, `bias [out]`. Matrices are row-major (PyTorch layout). Every
+//! value must be finite.
+//!
+//! ## Errors
+//! Decoding checks, in order: alignment, length of the fixed prefix, magic, version, header,
+//! total length, CRC, then the contents (dtype, observation spec, architecture, action map,
+//! control period, payload size, finite weights). Every defect is a [`BlobError`]; nothing
+//! panics and nothing is allocated.
+
+use crate::crc32::crc32;
+use crate::observation::ObservationSpec;
+use crate::policy::{Architecture, Policy};
+use crate::vehicle::ActionMap;
+use serde::{Deserialize, Serialize};
+
+/// The four bytes every blob starts with.
+pub const MAGIC: [u8; 4] = *b"OVTK";
+/// The format version this crate reads and writes.
+pub const FORMAT_VERSION: u16 = 1;
+/// Size of the fixed prefix (magic, version, header length).
+pub const PREFIX_LEN: usize = 8;
+/// Size of the trailing CRC.
+pub const CRC_LEN: usize = 4;
+
+/// Storage type of the weights.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum WeightDtype {
+    /// IEEE-754 binary32, little-endian.
+    F32,
+}
+
+impl WeightDtype {
+    /// Bytes per weight.
+    pub const fn size_bytes(self) -> usize {
+        match self {
+            Self::F32 => 4,
+        }
+    }
+}
+
+/// Where the weights came from.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Provenance {
+    /// Short name, e.g. "stage1" or "golden-G".
+    pub name: heapless::String<32>,
+    /// Seed of the training run.
+    pub seed: u64,
+    /// Training iterations.
+    pub iterations: u32,
+    /// Simulator preset trained on ("paper", "nominal", "realistic").
+    pub preset: heapless::String<16>,
+    /// A hash of the training configuration (0 when unknown).
+    pub config_hash: u64,
+}
+
+/// Everything a blob says about its weights.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BlobHeader {
+    /// Network shape.
+    pub architecture: Architecture,
+    /// The observation contract the policy was trained with.
+    pub observation: ObservationSpec,
+    /// Action → rpm map (paper eq. 3).
+    pub action_map: ActionMap,
+    /// Control period the policy was trained at (ns).
+    pub control_period_ns: u32,
+    /// Weight storage type.
+    pub dtype: WeightDtype,
+    /// Training provenance.
+    pub provenance: Provenance,
+    /// Payload size (bytes).
+    pub payload_len: u32,
+}
+
+/// A defect in a blob.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum BlobError {
+    /// The blob does not start on a 4-byte boundary, so its weights cannot be read in place.
+    Misaligned {
+        /// The start address modulo 4.
+        offset_mod_4: usize,
+    },
+    /// Fewer bytes than the blob needs.
+    Truncated {
+        /// Bytes needed so far.
+        needed: usize,
+        /// Bytes available.
+        available: usize,
+    },
+    /// The first four bytes are not [`MAGIC`].
+    BadMagic,
+    /// A format version this crate cannot read.
+    UnsupportedVersion(u16),
+    /// The header does not decode, or does not fill exactly its declared length.
+    MalformedHeader,
+    /// A padding byte before the payload is not zero.
+    NonZeroPadding,
+    /// The stored CRC does not match the bytes.
+    CrcMismatch {
+        /// CRC stored in the blob.
+        stored: u32,
+        /// CRC computed over the bytes.
+        computed: u32,
+    },
+    /// A weight dtype this build cannot run.
+    UnsupportedDtype,
+    /// The observation spec is of another pipeline version or has invalid scales.
+    ObservationSpecMismatch,
+    /// The architecture is not one of Table 1's, or disagrees with the observation spec.
+    UnsupportedArchitecture,
+    /// The action map is not finite and positive.
+    InvalidActionMap,
+    /// The control period is zero.
+    InvalidControlPeriod,
+    /// The payload does not hold exactly the architecture's parameters.
+    PayloadSizeMismatch {
+        /// Parameters the architecture needs.
+        expected_floats: usize,
+        /// Parameters in the payload.
+        actual_floats: usize,
+    },
+    /// A weight is NaN or infinite.
+    NonFiniteWeight {
+        /// Index of the weight in the payload.
+        index: usize,
+    },
+}
+
+impl core::fmt::Display for BlobError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match *self {
+            Self::Misaligned { offset_mod_4 } => {
+                write!(f, "blob starts at an address ≡ {offset_mod_4} (mod 4); it must be 4-byte aligned")
+            }
+            Self::Truncated { needed, available } => {
+                write!(f, "blob truncated: needs {needed} bytes, has {available}")
+            }
+            Self::BadMagic => f.write_str("not a weight blob (bad magic; expected \"OVTK\")"),
+            Self::UnsupportedVersion(v) => {
+                write!(f, "blob format version {v} is not supported (this build reads {FORMAT_VERSION})")
+            }
+            Self::MalformedHeader => f.write_str("blob header does not decode"),
+            Self::NonZeroPadding => f.write_str("blob padding bytes are not zero"),
+            Self::CrcMismatch { stored, computed } => {
+                write!(f, "blob CRC mismatch: stored {stored:#010x}, computed {computed:#010x}")
+            }
+            Self::UnsupportedDtype => f.write_str("blob weight dtype is not supported by this build"),
+            Self::ObservationSpecMismatch => {
+                f.write_str("blob observation spec does not match this observation pipeline")
+            }
+            Self::UnsupportedArchitecture => {
+                f.write_str("blob architecture is not a supported Table 1 policy")
+            }
+            Self::InvalidActionMap => f.write_str("blob action map is not finite and positive"),
+            Self::InvalidControlPeriod => f.write_str("blob control period is zero"),
+            Self::PayloadSizeMismatch { expected_floats, actual_floats } => write!(
+                f,
+                "blob payload holds {actual_floats} weights, the architecture needs {expected_floats}"
+            ),
+            Self::NonFiniteWeight { index } => write!(f, "blob weight {index} is not finite"),
+        }
+    }
+}
+
+#[cfg(target_endian = "big")]
+compile_error!("blobs store little-endian f32 and are read in place: big-endian targets are not supported");
+
+/// A validated blob, borrowing its bytes.
+#[derive(Clone, Debug)]
+pub struct Blob<'w> {
+    header: BlobHeader,
+    payload: &'w [f32],
+    len: usize,
+}
+
+fn read_u16(bytes: &[u8], at: usize) -> Option<u16> {
+    let b = bytes.get(at..at + 2)?;
+    Some(u16::from_le_bytes([*b.first()?, *b.get(1)?]))
+}
+
+fn read_u32(bytes: &[u8], at: usize) -> Option<u32> {
+    let b = bytes.get(at..at + 4)?;
+    Some(u32::from_le_bytes([*b.first()?, *b.get(1)?, *b.get(2)?, *b.get(3)?]))
+}
+
+/// Views 4-byte-aligned little-endian bytes as `f32` without copying.
+fn as_f32s(bytes: &[u8]) -> Result<&[f32], BlobError> {
+    let offset_mod_4 = bytes.as_ptr() as usize % 4;
+    if offset_mod_4 != 0 {
+        return Err(BlobError::Misaligned { offset_mod_4 });
+    }
+    // SAFETY: the pointer is 4-byte aligned (checked above), `len / 4` f32 lie within the
+    // borrowed bytes, every bit pattern is a valid f32, and the target is little-endian
+    // (compile_error above), so the values are the stored ones. The lifetime is the input's.
+    Ok(unsafe { core::slice::from_raw_parts(bytes.as_ptr().cast::<f32>(), bytes.len() / 4) })
+}
+
+impl<'w> Blob<'w> {
+    /// Validates `bytes` as a blob (every check of the module docs) without copying the
+    /// weights.
+    pub fn parse(bytes: &'w [u8]) -> Result<Self, BlobError> {
+        let offset_mod_4 = bytes.as_ptr() as usize % 4;
+        if offset_mod_4 != 0 {
+            return Err(BlobError::Misaligned { offset_mod_4 });
+        }
+        let truncated = |needed| BlobError::Truncated { needed, available: bytes.len() };
+        if bytes.len() < PREFIX_LEN {
+            return Err(truncated(PREFIX_LEN));
+        }
+        if bytes.get(..4) != Some(&MAGIC[..]) {
+            return Err(BlobError::BadMagic);
+        }
+        let version = read_u16(bytes, 4).ok_or(truncated(PREFIX_LEN))?;
+        if version != FORMAT_VERSION {
+            return Err(BlobError::UnsupportedVersion(version));
+        }
+        let header_len = usize::from(read_u16(bytes, 6).ok_or(truncated(PREFIX_LEN))?);
+        let header_end = PREFIX_LEN + header_len;
+        let header_bytes = bytes.get(PREFIX_LEN..header_end).ok_or(truncated(header_end))?;
+        let (header, rest) = postcard::take_from_bytes::<BlobHeader>(header_bytes)
+            .map_err(|_| BlobError::MalformedHeader)?;
+        if !rest.is_empty() {
+            return Err(BlobError::MalformedHeader);
+        }
+        let payload_offset = header_end.next_multiple_of(4);
+        let payload_len = header.payload_len as usize;
+        let payload_end = payload_offset.checked_add(payload_len).ok_or(BlobError::MalformedHeader)?;
+        let total = payload_end.checked_add(CRC_LEN).ok_or(BlobError::MalformedHeader)?;
+        if bytes.len() < total {
+            return Err(truncated(total));
+        }
+        let stored = read_u32(bytes, payload_end).ok_or(truncated(total))?;
+        let covered = bytes.get(..payload_end).ok_or(truncated(total))?;
+        let computed = crc32(covered);
+        if stored != computed {
+            return Err(BlobError::CrcMismatch { stored, computed });
+        }
+        let padding = bytes.get(header_end..payload_offset).ok_or(truncated(total))?;
+        if padding.iter().any(|&b| b != 0) {
+            return Err(BlobError::NonZeroPadding);
+        }
+        // Contents.
+        if header.dtype != WeightDtype::F32 {
+            return Err(BlobError::UnsupportedDtype);
+        }
+        if !header.observation.is_supported() {
+            return Err(BlobError::ObservationSpecMismatch);
+        }
+        if usize::from(header.architecture.obs_dim) != header.observation.dim() {
+            return Err(BlobError::UnsupportedArchitecture);
+        }
+        if !header.action_map.is_valid() {
+            return Err(BlobError::InvalidActionMap);
+        }
+        if header.control_period_ns == 0 {
+            return Err(BlobError::InvalidControlPeriod);
+        }
+        let expected_floats = header.architecture.param_count();
+        if payload_len % 4 != 0 || payload_len / 4 != expected_floats {
+            return Err(BlobError::PayloadSizeMismatch {
+                expected_floats,
+                actual_floats: payload_len / 4,
+            });
+        }
+        let payload = as_f32s(bytes.get(payload_offset..payload_end).ok_or(truncated(total))?)?;
+        if let Some(index) = payload.iter().position(|w| !w.is_finite()) {
+            return Err(BlobError::NonFiniteWeight { index });
+        }
+        let blob = Self { header, payload, len: total };
+        // The architecture must be one we can run.
+        blob.policy()?;
+        Ok(blob)
+    }
+
+    /// The header.
+    pub fn header(&self) -> &BlobHeader {
+        &self.header
+    }
+
+    /// The weights, in payload order.
+    pub fn weights(&self) -> &'w [f32] {
+        self.payload
+    }
+
+    /// Bytes the blob occupies (prefix, header, padding, payload, CRC).
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    /// Always false: a valid blob has a header.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// The policy network viewing this blob's weights.
+    pub fn policy(&self) -> Result<Policy<'w>, BlobError> {
+        Policy::from_payload(&self.header.architecture, self.payload)
+    }
+}
+
+#[cfg(feature = "std")]
+mod encode_std {
+    use super::*;
+    extern crate std;
+    use std::vec::Vec;
+
+    /// Why a blob could not be encoded.
+    #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+    #[non_exhaustive]
+    pub enum EncodeError {
+        /// The header does not serialise.
+        Header,
+        /// The header is longer than 65,535 bytes.
+        HeaderTooLong,
+        /// The weights do not match the architecture's parameter count.
+        WrongWeightCount {
+            /// Parameters the architecture needs.
+            expected: usize,
+            /// Weights given.
+            actual: usize,
+        },
+        /// A weight is NaN or infinite.
+        NonFiniteWeight {
+            /// Its index.
+            index: usize,
+        },
+        /// The payload exceeds u32::MAX bytes.
+        PayloadTooLarge,
+    }
+
+    impl core::fmt::Display for EncodeError {
+        fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+            match *self {
+                Self::Header => f.write_str("blob header does not serialise"),
+                Self::HeaderTooLong => f.write_str("blob header is longer than 65535 bytes"),
+                Self::WrongWeightCount { expected, actual } => {
+                    write!(f, "got {actual} weights, the architecture needs {expected}")
+                }
+                Self::NonFiniteWeight { index } => write!(f, "weight {index} is not finite"),
+                Self::PayloadTooLarge => f.write_str("payload exceeds 4 GiB"),
+            }
+        }
+    }
+
+    impl std::error::Error for EncodeError {}
+    impl std::error::Error for BlobError {}
+
+    /// Encodes f32 `weights` (payload order) under `header` (its `payload_len` and `dtype`
+    /// are set here).
+    pub fn encode(header: &BlobHeader, weights: &[f32]) -> Result<Vec<u8>, EncodeError> {
+        let expected = header.architecture.param_count();
+        if weights.len() != expected {
+            return Err(EncodeError::WrongWeightCount { expected, actual: weights.len() });
+        }
+        if let Some(index) = weights.iter().position(|w| !w.is_finite()) {
+            return Err(EncodeError::NonFiniteWeight { index });
+        }
+        let mut header = header.clone();
+        header.dtype = WeightDtype::F32;
+        header.payload_len =
+            u32::try_from(weights.len() * 4).map_err(|_| EncodeError::PayloadTooLarge)?;
+        let head = postcard::to_stdvec(&header).map_err(|_| EncodeError::Header)?;
+        let head_len = u16::try_from(head.len()).map_err(|_| EncodeError::HeaderTooLong)?;
+        let mut out = Vec::with_capacity(PREFIX_LEN + head.len() + 3 + weights.len() * 4 + 4);
+        out.extend_from_slice(&MAGIC);
+        out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+        out.extend_from_slice(&head_len.to_le_bytes());
+        out.extend_from_slice(&head);
+        out.resize(out.len().next_multiple_of(4), 0);
+        for w in weights {
+            out.extend_from_slice(&w.to_le_bytes());
+        }
+        let crc = crc32(&out);
+        out.extend_from_slice(&crc.to_le_bytes());
+        Ok(out)
+    }
+
+    /// Bytes held at a 4-byte-aligned address, as flash would hold a blob.
+    #[derive(Clone, Debug, Default, PartialEq, Eq)]
+    pub struct AlignedBytes {
+        words: Vec<u32>,
+        len: usize,
+    }
+
+    impl AlignedBytes {
+        /// A 4-byte-aligned copy of `bytes`.
+        pub fn new(bytes: &[u8]) -> Self {
+            let mut words = std::vec![0u32; bytes.len().div_ceil(4)];
+            for (w, chunk) in words.iter_mut().zip(bytes.chunks(4)) {
+                let mut b = [0u8; 4];
+                for (dst, src) in b.iter_mut().zip(chunk) {
+                    *dst = *src;
+                }
+                *w = u32::from_ne_bytes(b);
+            }
+            Self { words, len: bytes.len() }
+        }
+
+        /// The bytes.
+        pub fn as_bytes(&self) -> &[u8] {
+            // SAFETY: `words` holds at least `len` initialised bytes; u8 has no alignment or
+            // validity requirement.
+            unsafe { core::slice::from_raw_parts(self.words.as_ptr().cast::<u8>(), self.len) }
+        }
+
+        /// Mutable bytes (for corruption tests).
+        pub fn as_bytes_mut(&mut self) -> &mut [u8] {
+            // SAFETY: as in `as_bytes`, with unique access through `&mut self`.
+            unsafe { core::slice::from_raw_parts_mut(self.words.as_mut_ptr().cast::<u8>(), self.len) }
+        }
+    }
+}
+
+#[cfg(feature = "std")]
+pub use encode_std::{AlignedBytes, EncodeError, encode};

@@ -1,0 +1,216 @@
+//! The deployed controller: a blob's policy, its recurrent state, the previous action and the
+//! target gate, stepped once per control period.
+//!
+//! A step reads in order: 10 validate the inputs (a NaN or infinity gives the fail-safe),
+//! 20 advance the target gate with the segment test, 30 observe, 40 infer, 50 clip the
+//! Gaussian mean to [-1, 1], 60 map to rpm (paper eq. 3).
+
+use crate::blob::{Blob, BlobError};
+use crate::math::Vec3;
+use crate::nn::ACTION_DIM;
+use crate::observation::{ObservationError, ObservationSpec};
+use crate::policy::{Policy, PolicyState};
+use crate::track::{GateEvent, GateProgress, Track};
+use crate::vehicle::{ActionMap, MotorCommand, VehicleState};
+
+/// Why a controller cannot be built.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum ControllerError {
+    /// The blob is defective.
+    Blob(BlobError),
+    /// A recurrent policy would run at another rate than it was trained at.
+    RateMismatch {
+        /// Control period recorded in the blob (ns).
+        trained_ns: u32,
+        /// Control period requested (ns).
+        requested_ns: u32,
+    },
+}
+
+impl From<BlobError> for ControllerError {
+    fn from(e: BlobError) -> Self {
+        Self::Blob(e)
+    }
+}
+
+impl core::fmt::Display for ControllerError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::Blob(e) => e.fmt(f),
+            Self::RateMismatch { trained_ns, requested_ns } => write!(
+                f,
+                "recurrent policy trained at a {trained_ns} ns control period cannot run at {requested_ns} ns"
+            ),
+        }
+    }
+}
+
+/// A step that could not run the policy; the controller commanded the fail-safe instead.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum StepFault {
+    /// The own state has a NaN or infinite value.
+    NonFiniteState,
+    /// The opponent state has a NaN or infinite value.
+    NonFiniteOpponent,
+    /// The policy observes an opponent and none was given.
+    MissingOpponent,
+    /// The policy produced a NaN or infinite action.
+    NonFiniteAction,
+}
+
+impl core::fmt::Display for StepFault {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(match self {
+            Self::NonFiniteState => "own state not finite",
+            Self::NonFiniteOpponent => "opponent state not finite",
+            Self::MissingOpponent => "opponent state missing",
+            Self::NonFiniteAction => "policy output not finite",
+        })
+    }
+}
+
+/// The result of one control step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepOutput {
+    /// The propeller speeds to command ([`MotorCommand::STOP`] on a fault).
+    pub command: MotorCommand,
+    /// The clipped action behind `command` (zeros on a fault).
+    pub action: [f32; ACTION_DIM],
+    /// Set when the step fell back to the fail-safe.
+    pub fault: Option<StepFault>,
+    /// The gate event detected at the start of this step.
+    pub gate_event: GateEvent,
+}
+
+/// A learned racing controller running a blob's policy.
+///
+/// The fail-safe is [`MotorCommand::STOP`] (all motors off, as a flight controller disarms):
+/// on a fault the recurrent state, previous action and target gate are left as they were, and
+/// [`Controller::fault_count`] counts the event.
+#[derive(Clone, Debug)]
+pub struct Controller<'w> {
+    policy: Policy<'w>,
+    state: PolicyState,
+    observation: ObservationSpec,
+    action_map: ActionMap,
+    control_period_ns: u32,
+    track: Track<'w>,
+    progress: GateProgress,
+    previous_action: [f32; ACTION_DIM],
+    previous_position: Option<Vec3>,
+    fault_count: u32,
+}
+
+impl<'w> Controller<'w> {
+    /// A controller for `blob` on `track`, stepped every `control_period_ns`. A recurrent
+    /// policy refuses any period but the one it was trained at.
+    pub fn new(blob: &Blob<'w>, track: Track<'w>, control_period_ns: u32) -> Result<Self, ControllerError> {
+        let header = blob.header();
+        let policy = blob.policy()?;
+        if policy.is_recurrent() && control_period_ns != header.control_period_ns {
+            return Err(ControllerError::RateMismatch {
+                trained_ns: header.control_period_ns,
+                requested_ns: control_period_ns,
+            });
+        }
+        Ok(Self {
+            policy,
+            state: policy.initial_state(),
+            observation: header.observation,
+            action_map: header.action_map,
+            control_period_ns,
+            track,
+            progress: GateProgress::targeting(0),
+            previous_action: [0.0; ACTION_DIM],
+            previous_position: None,
+            fault_count: 0,
+        })
+    }
+
+    /// Parses `bytes` as a blob and builds a controller at the blob's own control period.
+    pub fn from_bytes(bytes: &'w [u8], track: Track<'w>) -> Result<Self, ControllerError> {
+        let blob = Blob::parse(bytes)?;
+        Self::new(&blob, track, blob.header().control_period_ns)
+    }
+
+    /// Starts a new flight targeting gate `target_gate` (after a spawn or respawn): zeroes the
+    /// recurrent state and the previous action.
+    pub fn reset(&mut self, target_gate: usize) {
+        self.state = self.policy.initial_state();
+        self.progress = GateProgress::targeting(target_gate % self.track.len().max(1));
+        self.previous_action = [0.0; ACTION_DIM];
+        self.previous_position = None;
+    }
+
+    /// One control step from the own state and, for policies that observe one, the
+    /// opponent's. Never panics: a bad input gives the fail-safe and a fault.
+    pub fn step(&mut self, own: &VehicleState, opponent: Option<&VehicleState>) -> StepOutput {
+        // 10 validate: the observation refuses non-finite inputs before any state changes.
+        let gate_event = match self.previous_position {
+            Some(from) if own.position_m.is_finite() => {
+                // 20 target gate
+                self.progress.advance(&self.track, from, own.position_m)
+            }
+            _ => GateEvent::None,
+        };
+        let gate = self.track.gate(self.progress.target);
+        // 30 observe
+        let obs = match self.observation.observe(own, &gate, &self.previous_action, opponent) {
+            Ok(obs) => obs,
+            Err(e) => {
+                let fault = match e {
+                    ObservationError::NonFiniteOpponent => StepFault::NonFiniteOpponent,
+                    ObservationError::MissingOpponent => StepFault::MissingOpponent,
+                    _ => StepFault::NonFiniteState,
+                };
+                return self.fail_safe(fault, gate_event);
+            }
+        };
+        self.previous_position = Some(own.position_m);
+        // 40 infer
+        let mut next_state = self.state;
+        let Some(mean) = self.policy.act(&obs, &mut next_state) else {
+            return self.fail_safe(StepFault::NonFiniteAction, gate_event);
+        };
+        if !mean.iter().all(|a| a.is_finite()) {
+            return self.fail_safe(StepFault::NonFiniteAction, gate_event);
+        }
+        self.state = next_state;
+        // 50 clip, 60 map to rpm
+        let action = mean.map(|a| a.clamp(-1.0, 1.0));
+        self.previous_action = action;
+        StepOutput { command: self.action_map.command(&action), action, fault: None, gate_event }
+    }
+
+    fn fail_safe(&mut self, fault: StepFault, gate_event: GateEvent) -> StepOutput {
+        self.fault_count = self.fault_count.saturating_add(1);
+        StepOutput { command: MotorCommand::STOP, action: [0.0; ACTION_DIM], fault: Some(fault), gate_event }
+    }
+
+    /// The policy network.
+    pub fn policy(&self) -> &Policy<'w> {
+        &self.policy
+    }
+
+    /// The recurrent state (for tests and telemetry).
+    pub fn policy_state(&self) -> &PolicyState {
+        &self.state
+    }
+
+    /// The gate the controller flies to and the gates it has passed.
+    pub fn progress(&self) -> GateProgress {
+        self.progress
+    }
+
+    /// The control period this controller runs at (ns).
+    pub fn control_period_ns(&self) -> u32 {
+        self.control_period_ns
+    }
+
+    /// Steps that fell back to the fail-safe since construction.
+    pub fn fault_count(&self) -> u32 {
+        self.fault_count
+    }
+}

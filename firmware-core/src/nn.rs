@@ -1,0 +1,426 @@
+//! Fixed-size neural-network inference over weights borrowed from a blob.
+//!
+//! Every layer is a *view*: it holds `&'w [f32]` slices into the blob's payload (flash on a
+//! microcontroller) and never copies them. Sizes are const generics; activations live on the
+//! stack and the recurrent state is a separate value owned by the caller (the controller).
+//!
+//! ## Layer formats (the payload order of [`crate::blob`])
+//! * [`Linear<IN, OUT>`]: `weight` row-major `[OUT][IN]` (PyTorch `nn.Linear.weight`), then
+//!   `bias[OUT]`; `y = W x + b`.
+//! * [`LstmCell<IN, H>`]: `weight_ih` row-major `[4H][IN]`, `weight_hh` row-major `[4H][H]`,
+//!   then `bias[4H]`. Rows are in PyTorch's gate order **i, f, g, o**. PyTorch keeps two bias
+//!   vectors, `bias_ih` and `bias_hh`, that are only ever added together; the blob stores
+//!   their sum, `bias = bias_ih + bias_hh` (an exporter adds them in f32).
+//!   With `z = W_ih x + W_hh h + bias`: `i = σ(z_i)`, `f = σ(z_f)`, `g = tanh(z_g)`,
+//!   `o = σ(z_o)`, `c' = f c + i g`, `h' = o tanh(c')`.
+//! * An MLP head ([`Mlp2`], [`Mlp3`], [`Mlp4`]): its hidden [`Linear`] layers each followed
+//!   by tanh, then a linear output layer (no activation): the Gaussian mean of the policy.
+
+use crate::blob::BlobError;
+
+/// Actions of a quadrotor policy: one per motor.
+pub const ACTION_DIM: usize = 4;
+
+/// Reads consecutive weight slices out of a payload.
+#[derive(Debug)]
+pub struct WeightReader<'w> {
+    rest: &'w [f32],
+    taken: usize,
+}
+
+impl<'w> WeightReader<'w> {
+    /// A reader at the start of `payload`.
+    pub fn new(payload: &'w [f32]) -> Self {
+        Self { rest: payload, taken: 0 }
+    }
+
+    /// The next `n` values.
+    pub fn take(&mut self, n: usize) -> Result<&'w [f32], BlobError> {
+        if n > self.rest.len() {
+            return Err(BlobError::PayloadSizeMismatch {
+                expected_floats: self.taken + n,
+                actual_floats: self.taken + self.rest.len(),
+            });
+        }
+        let (head, tail) = self.rest.split_at(n);
+        self.rest = tail;
+        self.taken += n;
+        Ok(head)
+    }
+
+    /// Checks that every value was consumed.
+    pub fn finish(self) -> Result<(), BlobError> {
+        if self.rest.is_empty() {
+            Ok(())
+        } else {
+            Err(BlobError::PayloadSizeMismatch {
+                expected_floats: self.taken,
+                actual_floats: self.taken + self.rest.len(),
+            })
+        }
+    }
+}
+
+/// Dot product with eight independent accumulators, so the sum is not one long dependency
+/// chain (the compiler keeps them in vector or FPU registers).
+#[inline(always)]
+fn dot(w: &[f32], x: &[f32]) -> f32 {
+    let mut acc = [0.0f32; 8];
+    let wc = w.chunks_exact(8);
+    let xc = x.chunks_exact(8);
+    let (wr, xr) = (wc.remainder(), xc.remainder());
+    for (wk, xk) in wc.zip(xc) {
+        for ((a, wi), xi) in acc.iter_mut().zip(wk).zip(xk) {
+            *a += wi * xi;
+        }
+    }
+    let mut tail = 0.0f32;
+    for (wi, xi) in wr.iter().zip(xr) {
+        tail += wi * xi;
+    }
+    ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
+}
+
+/// Logistic sigmoid through libm.
+#[inline]
+pub fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + libm::expf(-x))
+}
+
+fn tanh_in_place(v: &mut [f32]) {
+    for x in v {
+        *x = libm::tanhf(*x);
+    }
+}
+
+/// A fully connected layer `y = W x + b` viewing `[OUT][IN]` weights and `[OUT]` biases.
+#[derive(Clone, Copy, Debug)]
+pub struct Linear<'w, const IN: usize, const OUT: usize> {
+    weight: &'w [f32],
+    bias: &'w [f32],
+}
+
+impl<'w, const IN: usize, const OUT: usize> Linear<'w, IN, OUT> {
+    /// Number of parameters.
+    pub const PARAMS: usize = IN * OUT + OUT;
+
+    /// Takes the layer's weights, then biases, from `r`.
+    pub fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError> {
+        let weight = r.take(IN * OUT)?;
+        let bias = r.take(OUT)?;
+        Ok(Self { weight, bias })
+    }
+
+    /// `y = W x + b`.
+    #[inline]
+    pub fn forward(&self, x: &[f32; IN], y: &mut [f32; OUT]) {
+        for ((yo, row), b) in y.iter_mut().zip(self.weight.chunks_exact(IN)).zip(self.bias) {
+            *yo = dot(row, x) + b;
+        }
+    }
+}
+
+/// The hidden and cell state of one LSTM layer.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LstmLayerState<const H: usize> {
+    /// Hidden state h.
+    pub h: [f32; H],
+    /// Cell state c.
+    pub c: [f32; H],
+}
+
+impl<const H: usize> Default for LstmLayerState<H> {
+    fn default() -> Self {
+        Self { h: [0.0; H], c: [0.0; H] }
+    }
+}
+
+/// One LSTM layer (PyTorch semantics, gate order i, f, g, o; see the module docs).
+#[derive(Clone, Copy, Debug)]
+pub struct LstmCell<'w, const IN: usize, const H: usize> {
+    weight_ih: &'w [f32],
+    weight_hh: &'w [f32],
+    bias: &'w [f32],
+}
+
+impl<'w, const IN: usize, const H: usize> LstmCell<'w, IN, H> {
+    /// Number of parameters (with the two PyTorch biases stored as one).
+    pub const PARAMS: usize = 4 * H * IN + 4 * H * H + 4 * H;
+
+    /// Takes `weight_ih`, `weight_hh`, then the summed bias from `r`.
+    pub fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError> {
+        let weight_ih = r.take(4 * H * IN)?;
+        let weight_hh = r.take(4 * H * H)?;
+        let bias = r.take(4 * H)?;
+        Ok(Self { weight_ih, weight_hh, bias })
+    }
+
+    /// Advances `state` by one input `x`.
+    pub fn step(&self, x: &[f32; IN], state: &mut LstmLayerState<H>) {
+        // Pre-activations of the four gates, i f g o.
+        let mut z = [[0.0f32; H]; 4];
+        let blocks = self
+            .weight_ih
+            .chunks_exact(H * IN)
+            .zip(self.weight_hh.chunks_exact(H * H))
+            .zip(self.bias.chunks_exact(H));
+        for (zg, ((w_ih, w_hh), b)) in z.iter_mut().zip(blocks) {
+            let rows = w_ih.chunks_exact(IN).zip(w_hh.chunks_exact(H)).zip(b);
+            for (zo, ((ri, rh), bo)) in zg.iter_mut().zip(rows) {
+                *zo = dot(ri, x) + dot(rh, &state.h) + bo;
+            }
+        }
+        let [zi, zf, zg, zo] = &z;
+        let units = state.h.iter_mut().zip(state.c.iter_mut());
+        for ((((h, c), i), f), (g, o)) in units.zip(zi).zip(zf).zip(zg.iter().zip(zo)) {
+            let cn = sigmoid(*f) * *c + sigmoid(*i) * libm::tanhf(*g);
+            *c = cn;
+            *h = sigmoid(*o) * libm::tanhf(cn);
+        }
+    }
+}
+
+/// A stack of `1 + DEEP` LSTM layers of width `H` on `IN` inputs.
+#[derive(Clone, Copy, Debug)]
+pub struct LstmStack<'w, const IN: usize, const H: usize, const DEEP: usize> {
+    first: LstmCell<'w, IN, H>,
+    deep: [LstmCell<'w, H, H>; DEEP],
+}
+
+/// The state of an [`LstmStack`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LstmStackState<const H: usize, const DEEP: usize> {
+    /// State of the first layer.
+    pub first: LstmLayerState<H>,
+    /// States of the layers after it.
+    pub deep: [LstmLayerState<H>; DEEP],
+}
+
+impl<const H: usize, const DEEP: usize> Default for LstmStackState<H, DEEP> {
+    fn default() -> Self {
+        Self { first: LstmLayerState::default(), deep: [LstmLayerState::default(); DEEP] }
+    }
+}
+
+impl<const H: usize, const DEEP: usize> LstmStackState<H, DEEP> {
+    /// The top layer's hidden state: the stack's output.
+    pub fn output(&self) -> &[f32; H] {
+        match self.deep.last() {
+            Some(top) => &top.h,
+            None => &self.first.h,
+        }
+    }
+}
+
+impl<'w, const IN: usize, const H: usize, const DEEP: usize> LstmStack<'w, IN, H, DEEP> {
+    /// Number of parameters.
+    pub const PARAMS: usize = LstmCell::<IN, H>::PARAMS + DEEP * LstmCell::<H, H>::PARAMS;
+
+    /// Takes the layers in order from `r`.
+    pub fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError> {
+        let first = LstmCell::load(r)?;
+        let empty = LstmCell { weight_ih: &[], weight_hh: &[], bias: &[] };
+        let mut deep = [empty; DEEP];
+        for cell in &mut deep {
+            *cell = LstmCell::load(r)?;
+        }
+        Ok(Self { first, deep })
+    }
+
+    /// Advances every layer by one input; the output is `state.output()`.
+    pub fn step(&self, x: &[f32; IN], state: &mut LstmStackState<H, DEEP>) {
+        self.first.step(x, &mut state.first);
+        let mut below = state.first.h;
+        for (cell, s) in self.deep.iter().zip(state.deep.iter_mut()) {
+            cell.step(&below, s);
+            below = s.h;
+        }
+    }
+}
+
+/// An MLP head: its forward pass from `IN` features to the [`ACTION_DIM`] outputs.
+pub trait Head<'w, const IN: usize>: Sized {
+    /// Number of parameters.
+    const PARAMS: usize;
+    /// Bytes of activations the forward pass keeps on the stack.
+    const SCRATCH_BYTES: usize;
+    /// Takes the layers in order from `r`.
+    fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError>;
+    /// The output (the Gaussian mean, not yet clipped).
+    fn forward(&self, x: &[f32; IN]) -> [f32; ACTION_DIM];
+}
+
+/// MLP head with two tanh hidden layers (Table 1 rows A, B: 2 × 128).
+#[derive(Clone, Copy, Debug)]
+pub struct Mlp2<'w, const IN: usize, const H1: usize, const H2: usize> {
+    l1: Linear<'w, IN, H1>,
+    l2: Linear<'w, H1, H2>,
+    out: Linear<'w, H2, ACTION_DIM>,
+}
+
+impl<'w, const IN: usize, const H1: usize, const H2: usize> Head<'w, IN> for Mlp2<'w, IN, H1, H2> {
+    const PARAMS: usize =
+        Linear::<IN, H1>::PARAMS + Linear::<H1, H2>::PARAMS + Linear::<H2, ACTION_DIM>::PARAMS;
+    const SCRATCH_BYTES: usize = (H1 + H2 + ACTION_DIM) * 4;
+
+    fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError> {
+        Ok(Self { l1: Linear::load(r)?, l2: Linear::load(r)?, out: Linear::load(r)? })
+    }
+
+    fn forward(&self, x: &[f32; IN]) -> [f32; ACTION_DIM] {
+        let mut a1 = [0.0f32; H1];
+        self.l1.forward(x, &mut a1);
+        tanh_in_place(&mut a1);
+        let mut a2 = [0.0f32; H2];
+        self.l2.forward(&a1, &mut a2);
+        tanh_in_place(&mut a2);
+        let mut y = [0.0f32; ACTION_DIM];
+        self.out.forward(&a2, &mut y);
+        y
+    }
+}
+
+/// MLP head with three tanh hidden layers (row F: 256, 128, 128).
+#[derive(Clone, Copy, Debug)]
+pub struct Mlp3<'w, const IN: usize, const H1: usize, const H2: usize, const H3: usize> {
+    l1: Linear<'w, IN, H1>,
+    l2: Linear<'w, H1, H2>,
+    l3: Linear<'w, H2, H3>,
+    out: Linear<'w, H3, ACTION_DIM>,
+}
+
+impl<'w, const IN: usize, const H1: usize, const H2: usize, const H3: usize> Head<'w, IN>
+    for Mlp3<'w, IN, H1, H2, H3>
+{
+    const PARAMS: usize = Linear::<IN, H1>::PARAMS
+        + Linear::<H1, H2>::PARAMS
+        + Linear::<H2, H3>::PARAMS
+        + Linear::<H3, ACTION_DIM>::PARAMS;
+    const SCRATCH_BYTES: usize = (H1 + H2 + H3 + ACTION_DIM) * 4;
+
+    fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError> {
+        Ok(Self {
+            l1: Linear::load(r)?,
+            l2: Linear::load(r)?,
+            l3: Linear::load(r)?,
+            out: Linear::load(r)?,
+        })
+    }
+
+    fn forward(&self, x: &[f32; IN]) -> [f32; ACTION_DIM] {
+        let mut a1 = [0.0f32; H1];
+        self.l1.forward(x, &mut a1);
+        tanh_in_place(&mut a1);
+        let mut a2 = [0.0f32; H2];
+        self.l2.forward(&a1, &mut a2);
+        tanh_in_place(&mut a2);
+        let mut a3 = [0.0f32; H3];
+        self.l3.forward(&a2, &mut a3);
+        tanh_in_place(&mut a3);
+        let mut y = [0.0f32; ACTION_DIM];
+        self.out.forward(&a3, &mut y);
+        y
+    }
+}
+
+/// MLP head with four tanh hidden layers (rows C, D, E, G: 256, 128, 128, 64).
+#[derive(Clone, Copy, Debug)]
+pub struct Mlp4<'w, const IN: usize, const H1: usize, const H2: usize, const H3: usize, const H4: usize>
+{
+    l1: Linear<'w, IN, H1>,
+    l2: Linear<'w, H1, H2>,
+    l3: Linear<'w, H2, H3>,
+    l4: Linear<'w, H3, H4>,
+    out: Linear<'w, H4, ACTION_DIM>,
+}
+
+impl<'w, const IN: usize, const H1: usize, const H2: usize, const H3: usize, const H4: usize>
+    Head<'w, IN> for Mlp4<'w, IN, H1, H2, H3, H4>
+{
+    const PARAMS: usize = Linear::<IN, H1>::PARAMS
+        + Linear::<H1, H2>::PARAMS
+        + Linear::<H2, H3>::PARAMS
+        + Linear::<H3, H4>::PARAMS
+        + Linear::<H4, ACTION_DIM>::PARAMS;
+    const SCRATCH_BYTES: usize = (H1 + H2 + H3 + H4 + ACTION_DIM) * 4;
+
+    fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError> {
+        Ok(Self {
+            l1: Linear::load(r)?,
+            l2: Linear::load(r)?,
+            l3: Linear::load(r)?,
+            l4: Linear::load(r)?,
+            out: Linear::load(r)?,
+        })
+    }
+
+    fn forward(&self, x: &[f32; IN]) -> [f32; ACTION_DIM] {
+        let mut a1 = [0.0f32; H1];
+        self.l1.forward(x, &mut a1);
+        tanh_in_place(&mut a1);
+        let mut a2 = [0.0f32; H2];
+        self.l2.forward(&a1, &mut a2);
+        tanh_in_place(&mut a2);
+        let mut a3 = [0.0f32; H3];
+        self.l3.forward(&a2, &mut a3);
+        tanh_in_place(&mut a3);
+        let mut a4 = [0.0f32; H4];
+        self.l4.forward(&a3, &mut a4);
+        tanh_in_place(&mut a4);
+        let mut y = [0.0f32; ACTION_DIM];
+        self.out.forward(&a4, &mut y);
+        y
+    }
+}
+
+/// A feed-forward policy: an MLP head on the observation.
+#[derive(Clone, Copy, Debug)]
+pub struct MlpPolicy<M> {
+    head: M,
+}
+
+impl<M> MlpPolicy<M> {
+    /// Takes the head's weights from `r`.
+    pub fn load<'w, const IN: usize>(r: &mut WeightReader<'w>) -> Result<Self, BlobError>
+    where
+        M: Head<'w, IN>,
+    {
+        Ok(Self { head: M::load(r)? })
+    }
+
+    /// The Gaussian mean for observation `obs` (unclipped).
+    pub fn forward<'w, const IN: usize>(&self, obs: &[f32; IN]) -> [f32; ACTION_DIM]
+    where
+        M: Head<'w, IN>,
+    {
+        self.head.forward(obs)
+    }
+}
+
+/// A recurrent policy: an LSTM stack on the observation, then an MLP head on its output.
+#[derive(Clone, Copy, Debug)]
+pub struct LstmPolicy<'w, const IN: usize, const H: usize, const DEEP: usize, M> {
+    lstm: LstmStack<'w, IN, H, DEEP>,
+    head: M,
+}
+
+impl<'w, const IN: usize, const H: usize, const DEEP: usize, M: Head<'w, H>>
+    LstmPolicy<'w, IN, H, DEEP, M>
+{
+    /// Number of parameters.
+    pub const PARAMS: usize = LstmStack::<IN, H, DEEP>::PARAMS + M::PARAMS;
+    /// Bytes of activations kept on the stack by one step (the LSTM gate pre-activations and
+    /// the head's activations).
+    pub const SCRATCH_BYTES: usize = 4 * H * 4 + H * 4 + M::SCRATCH_BYTES;
+
+    /// Takes the LSTM layers, then the head, from `r`.
+    pub fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError> {
+        Ok(Self { lstm: LstmStack::load(r)?, head: M::load(r)? })
+    }
+
+    /// Advances the recurrent state by `obs` and returns the Gaussian mean (unclipped).
+    pub fn step(&self, obs: &[f32; IN], state: &mut LstmStackState<H, DEEP>) -> [f32; ACTION_DIM] {
+        self.lstm.step(obs, state);
+        self.head.forward(state.output())
+    }
+}

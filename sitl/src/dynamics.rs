@@ -1,0 +1,198 @@
+//! cf2x rigid-body dynamics (SPEC "Vehicle").
+//!
+//! Forces act at the four propeller positions along body +z (fᵢ = thrust_scale · kf · rpmᵢ²),
+//! the yaw torque is thrust_scale · km · Σ sᵢ rpmᵢ², gravity pulls along world −z. The state
+//! is integrated with `substeps` classical RK4 steps per control period; the attitude
+//! quaternion is re-normalised after every substep.
+
+use firmware_core::math::{Quat, Vec3};
+use firmware_core::vehicle::{Cf2x, MotorCommand, VehicleState};
+
+/// Physical parameters of one airframe and its simulation. Every field has a unit and a
+/// default ([`Preset::paper`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Preset {
+    /// Name of the preset ("paper", "nominal", "realistic").
+    pub name: &'static str,
+    /// Mass (kg). Default 0.027.
+    pub mass_kg: f32,
+    /// Principal moments of inertia (kg·m²). Default (1.4e-5, 1.4e-5, 2.17e-5).
+    pub inertia_kgm2: [f32; 3],
+    /// Thrust coefficient kf (N/rpm²). Default 3.16e-10.
+    pub kf_n_per_rpm2: f32,
+    /// Yaw-torque coefficient km (N·m/rpm²). Default 7.94e-12.
+    pub km_nm_per_rpm2: f32,
+    /// Fraction of kf·rpm² (and km·rpm²) that acts (dimensionless). `paper`: 0.5, the
+    /// paper's simulator applied the propeller force on one of its two substeps; else 1.
+    pub thrust_scale: f32,
+    /// Largest propeller speed (rpm); commands above are clipped. Default: no limit (∞).
+    pub max_rpm: f32,
+    /// First-order motor time constant (s); 0 means the commanded speed acts at once.
+    /// Default 0.
+    pub motor_time_constant_s: f32,
+    /// Linear drag, force per velocity and mass (1/s), applied as −drag·m·v. Default 0.
+    pub linear_drag_per_s: f32,
+    /// Gravity (m/s²). Default 9.81.
+    pub gravity_mps2: f32,
+    /// Integration substeps per control period. Default 4.
+    pub substeps: u32,
+}
+
+impl Default for Preset {
+    fn default() -> Self {
+        Self::paper()
+    }
+}
+
+impl Preset {
+    /// The paper's effective dynamics: half of kf·rpm² (hover at a ≈ +0.52, thrust-to-weight
+    /// ≈ 1.62 at a = 1), no drag, no motor lag.
+    pub fn paper() -> Self {
+        Self { name: "paper", thrust_scale: 0.5, ..Self::nominal() }
+    }
+
+    /// The full kf·rpm² (thrust-to-weight 3.24 at a = 1), no drag, no motor lag.
+    pub fn nominal() -> Self {
+        Self {
+            name: "nominal",
+            mass_kg: Cf2x::MASS_KG,
+            inertia_kgm2: Cf2x::INERTIA_KGM2,
+            kf_n_per_rpm2: Cf2x::KF_N_PER_RPM2,
+            km_nm_per_rpm2: Cf2x::KM_NM_PER_RPM2,
+            thrust_scale: 1.0,
+            max_rpm: f32::INFINITY,
+            motor_time_constant_s: 0.0,
+            linear_drag_per_s: 0.0,
+            gravity_mps2: Cf2x::GRAVITY_MPS2,
+            substeps: 4,
+        }
+    }
+
+    /// Nominal force with the rpm limited to 21,702 (thrust-to-weight 2.25), a 30 ms motor
+    /// lag and 0.1 /s linear drag.
+    pub fn realistic() -> Self {
+        Self {
+            name: "realistic",
+            max_rpm: 21_702.0,
+            motor_time_constant_s: 0.03,
+            linear_drag_per_s: 0.1,
+            ..Self::nominal()
+        }
+    }
+
+    /// The preset called `name`.
+    pub fn by_name(name: &str) -> Option<Self> {
+        match name {
+            "paper" => Some(Self::paper()),
+            "nominal" => Some(Self::nominal()),
+            "realistic" => Some(Self::realistic()),
+            _ => None,
+        }
+    }
+
+    /// Propeller speed that holds hover (rpm).
+    pub fn hover_rpm(&self) -> f32 {
+        libm::sqrtf(self.mass_kg * self.gravity_mps2 / (4.0 * self.thrust_scale * self.kf_n_per_rpm2))
+    }
+}
+
+/// A simulated drone: its kinematic state and its propellers' actual speeds.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Body {
+    /// Position, attitude, velocity and body rates.
+    pub state: VehicleState,
+    /// Actual propeller speeds (rpm); equal to the command without motor lag.
+    pub rpm: [f32; 4],
+}
+
+#[derive(Clone, Copy)]
+struct Derivative {
+    velocity: Vec3,
+    attitude: Quat,
+    accel: Vec3,
+    angular_accel: Vec3,
+}
+
+fn derivative(p: &Preset, s: &VehicleState, rpm: &[f32; 4]) -> Derivative {
+    let mut force_z = 0.0;
+    let mut torque = Vec3::ZERO;
+    for ((r, pos), spin) in rpm.iter().zip(Cf2x::PROPELLER_POSITIONS_M).zip(Cf2x::SPIN_SIGNS) {
+        let r2 = r * r;
+        let f = p.thrust_scale * p.kf_n_per_rpm2 * r2;
+        force_z += f;
+        // τ = p × (0, 0, f) = (y f, −x f, 0)
+        torque += Vec3::new(pos[1] * f, -pos[0] * f, spin * p.thrust_scale * p.km_nm_per_rpm2 * r2);
+    }
+    let thrust_world = s.attitude.rotate(Vec3::new(0.0, 0.0, force_z));
+    let accel = thrust_world.scale(1.0 / p.mass_kg) - s.velocity_mps.scale(p.linear_drag_per_s)
+        + Vec3::new(0.0, 0.0, -p.gravity_mps2);
+    let w = s.body_rates_radps;
+    let j = Vec3::from_array(p.inertia_kgm2);
+    let jw = Vec3::new(j.x * w.x, j.y * w.y, j.z * w.z);
+    let net = torque - w.cross(jw);
+    let angular_accel = Vec3::new(net.x / j.x, net.y / j.y, net.z / j.z);
+    // q̇ = ½ q ⊗ (0, ω)
+    let qd = s.attitude * Quat::new(0.0, w.x, w.y, w.z);
+    Derivative {
+        velocity: s.velocity_mps,
+        attitude: Quat::new(0.5 * qd.w, 0.5 * qd.x, 0.5 * qd.y, 0.5 * qd.z),
+        accel,
+        angular_accel,
+    }
+}
+
+fn advance(s: &VehicleState, d: &Derivative, h: f32) -> VehicleState {
+    let q = s.attitude;
+    VehicleState {
+        position_m: s.position_m + d.velocity.scale(h),
+        attitude: Quat::new(q.w + h * d.attitude.w, q.x + h * d.attitude.x, q.y + h * d.attitude.y, q.z + h * d.attitude.z),
+        velocity_mps: s.velocity_mps + d.accel.scale(h),
+        body_rates_radps: s.body_rates_radps + d.angular_accel.scale(h),
+    }
+}
+
+impl Body {
+    /// A drone at rest in `state`, propellers stopped.
+    pub fn new(state: VehicleState) -> Self {
+        Self { state, rpm: [0.0; 4] }
+    }
+
+    /// Advances by `dt_s` under `command` with `preset.substeps` RK4 substeps.
+    pub fn step(&mut self, preset: &Preset, command: &MotorCommand, dt_s: f32) {
+        let n = preset.substeps.max(1);
+        let h = dt_s / n as f32;
+        let target = command.rpm.map(|r| if r.is_finite() { r.clamp(0.0, preset.max_rpm) } else { 0.0 });
+        for _ in 0..n {
+            if preset.motor_time_constant_s > 0.0 {
+                let alpha = 1.0 - libm::expf(-h / preset.motor_time_constant_s);
+                for (r, t) in self.rpm.iter_mut().zip(target) {
+                    *r += alpha * (t - *r);
+                }
+            } else {
+                self.rpm = target;
+            }
+            let s = self.state;
+            let k1 = derivative(preset, &s, &self.rpm);
+            let k2 = derivative(preset, &advance(&s, &k1, 0.5 * h), &self.rpm);
+            let k3 = derivative(preset, &advance(&s, &k2, 0.5 * h), &self.rpm);
+            let k4 = derivative(preset, &advance(&s, &k3, h), &self.rpm);
+            let sum = |f: fn(&Derivative) -> [f32; 4]| {
+                let (a, b, c, d) = (f(&k1), f(&k2), f(&k3), f(&k4));
+                core::array::from_fn::<f32, 4, _>(|i| (a[i] + 2.0 * b[i] + 2.0 * c[i] + d[i]) / 6.0)
+            };
+            let v = sum(|d| [d.velocity.x, d.velocity.y, d.velocity.z, 0.0]);
+            let q = sum(|d| d.attitude.to_array());
+            let a = sum(|d| [d.accel.x, d.accel.y, d.accel.z, 0.0]);
+            let w = sum(|d| [d.angular_accel.x, d.angular_accel.y, d.angular_accel.z, 0.0]);
+            let mean = Derivative {
+                velocity: Vec3::new(v[0], v[1], v[2]),
+                attitude: Quat::new(q[0], q[1], q[2], q[3]),
+                accel: Vec3::new(a[0], a[1], a[2]),
+                angular_accel: Vec3::new(w[0], w[1], w[2]),
+            };
+            let mut next = advance(&s, &mean, h);
+            next.attitude = next.attitude.normalized();
+            self.state = next;
+        }
+    }
+}
