@@ -149,6 +149,17 @@ impl Observation {
     pub fn dim(&self) -> usize {
         self.dim
     }
+
+    /// An observation holding `values` as they are (for replaying recorded or synthetic
+    /// inputs); `None` unless the length is one of the layouts' sizes.
+    pub fn from_values(values: &[f32]) -> Option<Self> {
+        ObservationLayout::from_dim(values.len())?;
+        let mut out = [0.0; MAX_OBSERVATION_DIM];
+        for (o, v) in out.iter_mut().zip(values) {
+            *o = *v;
+        }
+        Some(Self { values: out, dim: values.len() })
+    }
 }
 
 impl ObservationSpec {
