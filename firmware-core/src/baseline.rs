@@ -3,12 +3,13 @@
 //!
 //! It is the deployable fallback, the opponent before any policy is trained, and the proof
 //! that the track is flyable with the simulated dynamics. One step reads in order:
-//! 10 validate, 20 target gate (the same segment test as the referee), 30 guidance (a carrot on
-//! the target gate's axis), 40 velocity → acceleration, 50 thrust vector and tilt limit,
+//! 10 validate, 20 target gate (the same segment test as the referee), 30 guidance (pure
+//! pursuit of a carrot on the track's [`Centerline`], on the segment leading to the target
+//! gate), 40 velocity → acceleration, 50 thrust vector and tilt limit,
 //! 60 attitude error → body-rate set-point, 70 rate loop → torques, 80 mixer → rpm.
 
 use crate::math::{Quat, Vec3};
-use crate::track::{GateEvent, GateProgress, Track};
+use crate::track::{Centerline, GateEvent, GateProgress, Track};
 use crate::vehicle::{ActionMap, Cf2x, MotorCommand, VehicleState};
 
 /// Tuning and the controller's model of the airframe. Every field has a unit; the defaults
@@ -28,13 +29,16 @@ pub struct BaselineConfig {
     pub arm_m: f32,
     /// The motors' range: rpm = hover · (1 + gain · a), a ∈ [-1, 1]. Default paper eq. 3.
     pub action_map: ActionMap,
-    /// Speed along the racing line (m/s). Default 4.0.
+    /// Speed along the racing line (m/s). Default 7.0 (11.9 s laps on `paper`; the sweep
+    /// `cargo run --release -p overtake-tests --example baseline_speed_sweep` crashes at 10).
     pub cruise_speed_mps: f32,
-    /// Distance of the guidance carrot ahead of the drone along the gate axis (m). Default 3.0.
+    /// Fixed part of the carrot's distance ahead along the centreline (m). Default 1.5.
     pub lookahead_m: f32,
-    /// The carrot stays at most this far past the gate plane (m). Default 1.5.
-    pub exit_overshoot_m: f32,
-    /// Position error → velocity gain (1/s). Default 1.5.
+    /// Speed-proportional part of the carrot's distance (s): lookahead = lookahead_m +
+    /// lookahead_time_s · cruise. Default 0.35.
+    pub lookahead_time_s: f32,
+    /// Distance to the carrot → speed gain (1/s); the speed is at most the cruise speed.
+    /// Default 1.5.
     pub position_gain_per_s: f32,
     /// Velocity error → acceleration gain (1/s). Default 4.0.
     pub velocity_gain_per_s: f32,
@@ -77,9 +81,9 @@ impl BaselineConfig {
             torque_coeff_nm_per_rpm2: Cf2x::KM_NM_PER_RPM2,
             arm_m: 0.028,
             action_map: ActionMap::PAPER,
-            cruise_speed_mps: 4.0,
-            lookahead_m: 3.0,
-            exit_overshoot_m: 1.5,
+            cruise_speed_mps: 7.0,
+            lookahead_m: 1.5,
+            lookahead_time_s: 0.35,
             position_gain_per_s: 1.5,
             velocity_gain_per_s: 4.0,
             max_horizontal_accel_mps2: 8.0,
@@ -102,6 +106,7 @@ impl BaselineConfig {
 pub struct BaselineController<'t> {
     config: BaselineConfig,
     track: Track<'t>,
+    centerline: Centerline,
     progress: GateProgress,
     previous_position: Option<Vec3>,
     fault_count: u32,
@@ -110,7 +115,14 @@ pub struct BaselineController<'t> {
 impl<'t> BaselineController<'t> {
     /// A controller flying `track` from gate 0.
     pub fn new(config: BaselineConfig, track: Track<'t>) -> Self {
-        Self { config, track, progress: GateProgress::targeting(0), previous_position: None, fault_count: 0 }
+        Self {
+            config,
+            track,
+            centerline: Centerline::new(&track),
+            progress: GateProgress::targeting(0),
+            previous_position: None,
+            fault_count: 0,
+        }
     }
 
     /// Starts a new flight targeting `target_gate`.
@@ -148,19 +160,20 @@ impl<'t> BaselineController<'t> {
             None => GateEvent::None,
         };
         self.previous_position = Some(own.position_m);
-        let gate = self.track.gate(self.progress.target);
 
-        // 30 guidance: a carrot on the gate axis, `lookahead` ahead of the drone's projection.
-        // A drone behind the gate plane first returns to a point in front of the gate.
-        let local = gate.to_gate_frame(own.position_m);
-        let carrot_x = if local.x > -0.3 {
-            if local.x > 0.0 { -c.lookahead_m } else { c.exit_overshoot_m }
-        } else {
-            (local.x + c.lookahead_m).min(c.exit_overshoot_m)
-        };
-        let carrot = gate.to_world_frame(Vec3::new(carrot_x, 0.0, 0.0));
+        // 30 guidance: pure pursuit on the centreline segment that ends at the target gate.
+        let n = self.track.len();
+        let segment = (self.progress.target + n - 1) % n;
+        let s = self.centerline.nearest_on_segment(segment, own.position_m);
+        let speed_along = self.centerline.tangent(s).norm().max(1e-3);
+        let lookahead_m = c.lookahead_m + c.lookahead_time_s * c.cruise_speed_mps;
+        let carrot = self.centerline.point(s + lookahead_m / speed_along);
         let to_carrot = carrot - own.position_m;
-        let velocity_sp = to_carrot.scale(c.position_gain_per_s).limit_norm(c.cruise_speed_mps);
+        let distance = to_carrot.norm().max(1e-3);
+        // Cruise speed toward the carrot, slowing only when the carrot is closer than the
+        // lookahead (after a respawn or near the end of a segment).
+        let speed = c.cruise_speed_mps.min(c.position_gain_per_s * distance.max(lookahead_m));
+        let velocity_sp = to_carrot.scale(speed / distance);
 
         // 40 velocity → acceleration
         let mut accel = (velocity_sp - own.velocity_mps).scale(c.velocity_gain_per_s);

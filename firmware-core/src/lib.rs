@@ -39,7 +39,7 @@ pub use controller::{Controller, ControllerError, StepFault, StepOutput};
 pub use math::{Quat, Vec3};
 pub use observation::{Observation, ObservationLayout, ObservationSpec};
 pub use policy::{Architecture, Policy, PolicyState, TableRow};
-pub use track::{Gate, GateCrossing, GateEvent, GateProgress, Track};
+pub use track::{Centerline, Gate, GateCrossing, GateEvent, GateProgress, Track};
 pub use vehicle::{ActionMap, Cf2x, MotorCommand, VehicleState};
 
 /// The control period of the paper (50 Hz), in ns.

@@ -240,3 +240,71 @@ impl Mul for Quat {
         )
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn unit_quat() -> impl Strategy<Value = Quat> {
+        (-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0)
+            .prop_filter("non-degenerate", |(w, x, y, z)| w * w + x * x + y * y + z * z > 0.01)
+            .prop_map(|(w, x, y, z)| Quat::new(w, x, y, z).normalized())
+    }
+
+    fn vec3() -> impl Strategy<Value = Vec3> {
+        (-50.0f32..50.0, -50.0f32..50.0, -50.0f32..50.0).prop_map(|(x, y, z)| Vec3::new(x, y, z))
+    }
+
+    fn close(a: Vec3, b: Vec3, tol: f32) -> bool {
+        (a - b).norm() <= tol * (1.0 + a.norm().max(b.norm()))
+    }
+
+    proptest! {
+        #[test]
+        fn rotate_then_inverse_is_identity(q in unit_quat(), v in vec3()) {
+            prop_assert!(close(q.inverse_rotate(q.rotate(v)), v, 1e-5));
+            prop_assert!(close(q.rotate(q.inverse_rotate(v)), v, 1e-5));
+        }
+
+        #[test]
+        fn rotation_preserves_length(q in unit_quat(), v in vec3()) {
+            prop_assert!((q.rotate(v).norm() - v.norm()).abs() <= 1e-5 * (1.0 + v.norm()));
+        }
+
+        #[test]
+        fn product_composes_rotations(a in unit_quat(), b in unit_quat(), v in vec3()) {
+            prop_assert!(close((a * b).rotate(v), a.rotate(b.rotate(v)), 1e-5));
+        }
+
+        #[test]
+        fn conjugate_is_inverse(q in unit_quat()) {
+            let p = q * q.conjugate();
+            prop_assert!((p.w - 1.0).abs() < 1e-5 && p.vector().norm() < 1e-5);
+        }
+
+        #[test]
+        fn q_and_minus_q_are_the_same_rotation(q in unit_quat(), v in vec3()) {
+            let m = Quat::new(-q.w, -q.x, -q.y, -q.z);
+            prop_assert!(close(q.rotate(v), m.rotate(v), 1e-5));
+        }
+
+        #[test]
+        fn yaw_round_trips_through_heading(yaw in -3.1f32..3.1) {
+            prop_assert!((Quat::from_yaw(yaw).heading_rad() - yaw).abs() < 1e-5);
+        }
+    }
+
+    #[test]
+    fn rotate_matches_right_hand_rule() {
+        // +90° about z takes x to y.
+        let q = Quat::from_axis_angle(Vec3::Z, core::f32::consts::FRAC_PI_2);
+        assert!(close(q.rotate(Vec3::X), Vec3::Y, 1e-6));
+    }
+
+    #[test]
+    fn normalizing_garbage_gives_identity() {
+        assert_eq!(Quat::new(0.0, 0.0, 0.0, 0.0).normalized(), Quat::IDENTITY);
+        assert_eq!(Quat::new(f32::NAN, 0.0, 0.0, 0.0).normalized(), Quat::IDENTITY);
+    }
+}

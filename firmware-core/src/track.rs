@@ -88,14 +88,16 @@ pub const FIGURE_EIGHT_GATES: usize = 6;
 
 /// The paper's life-size figure-8 (SPEC "Track"): centres at z = 1 m, frames from the
 /// authors' code (Frenet frames of a periodic cubic spline through the centres with uniform
-/// knots, g0 and g3 overridden; g1 and g2 are upside down).
+/// knots, g0 and g3 overridden; g1 and g2 are upside down). SPEC gives the components to four
+/// digits (0.9403, 0.3404), whose norm is 1.000018; they are stored here divided by that norm,
+/// so every frame is a unit quaternion to f32 precision and rotations keep lengths.
 pub static FIGURE_EIGHT: [Gate; FIGURE_EIGHT_GATES] = [
     Gate { center_m: Vec3::new(0.0, 0.0, 1.0), frame: Quat::new(1.0, 0.0, 0.0, 0.0) },
-    Gate { center_m: Vec3::new(10.0, 5.0, 1.0), frame: Quat::new(0.0, 0.9403, -0.3404, 0.0) },
-    Gate { center_m: Vec3::new(10.0, -5.0, 1.0), frame: Quat::new(0.0, -0.3404, 0.9403, 0.0) },
+    Gate { center_m: Vec3::new(10.0, 5.0, 1.0), frame: Quat::new(0.0, 0.940_282_96, -0.340_393_83, 0.0) },
+    Gate { center_m: Vec3::new(10.0, -5.0, 1.0), frame: Quat::new(0.0, -0.340_393_83, 0.940_282_96, 0.0) },
     Gate { center_m: Vec3::new(0.0, 0.0, 1.0), frame: Quat::new(0.0, 0.0, 0.0, 1.0) },
-    Gate { center_m: Vec3::new(-10.0, 5.0, 1.0), frame: Quat::new(0.3404, 0.0, 0.0, -0.9403) },
-    Gate { center_m: Vec3::new(-10.0, -5.0, 1.0), frame: Quat::new(0.9403, 0.0, 0.0, -0.3404) },
+    Gate { center_m: Vec3::new(-10.0, 5.0, 1.0), frame: Quat::new(0.340_393_83, 0.0, 0.0, -0.940_282_96) },
+    Gate { center_m: Vec3::new(-10.0, -5.0, 1.0), frame: Quat::new(0.940_282_96, 0.0, 0.0, -0.340_393_83) },
 ];
 
 /// A closed track: gates in racing order, the last followed by the first.
@@ -173,6 +175,126 @@ impl<'a> Track<'a> {
     /// The segment test of [`Gate::crossing`] against gate `index` with this track's opening.
     pub fn crossing(&self, index: usize, from_m: Vec3, to_m: Vec3) -> GateCrossing {
         self.gate(index).crossing(from_m, to_m, self.opening_half_size_m)
+    }
+}
+
+/// Most gates a [`Centerline`] can run through.
+pub const MAX_CENTERLINE_GATES: usize = 16;
+
+/// The racing line of a track: the periodic cubic spline through the gate centres with
+/// uniform knots, gate `k` at parameter `k` (the construction of the paper's code, whose
+/// tangents give the gate headings of SPEC). Parameter `s ∈ [0, n)` runs once around a lap
+/// of `n` gates; segment `k` joins gate `k` to gate `k + 1`.
+///
+/// For the figure-8 the line is 68.66 m long.
+#[derive(Clone, Copy, Debug)]
+pub struct Centerline {
+    points: [Vec3; MAX_CENTERLINE_GATES],
+    /// Second derivatives at the knots (m per parameter²).
+    second: [Vec3; MAX_CENTERLINE_GATES],
+    n: usize,
+}
+
+impl Centerline {
+    /// The spline through `track`'s gate centres (the first [`MAX_CENTERLINE_GATES`]).
+    pub fn new(track: &Track<'_>) -> Self {
+        let n = track.len().min(MAX_CENTERLINE_GATES);
+        let mut points = [Vec3::ZERO; MAX_CENTERLINE_GATES];
+        for (p, g) in points.iter_mut().zip(track.gates()) {
+            *p = g.center_m;
+        }
+        // Periodic natural spline, uniform knots: M[i-1] + 4 M[i] + M[i+1] = 6 (P[i+1] - 2 P[i] + P[i-1]).
+        // Strictly diagonally dominant, so Gauss-Seidel converges geometrically (ratio 1/2).
+        let at = |a: &[Vec3; MAX_CENTERLINE_GATES], i: usize| a.get(i % n.max(1)).copied().unwrap_or(Vec3::ZERO);
+        let mut second = [Vec3::ZERO; MAX_CENTERLINE_GATES];
+        if n >= 3 {
+            for _ in 0..60 {
+                for i in 0..n {
+                    let rhs = (at(&points, i + 1) - at(&points, i).scale(2.0) + at(&points, i + n - 1)).scale(6.0);
+                    let v = (rhs - at(&second, i + n - 1) - at(&second, i + 1)).scale(0.25);
+                    if let Some(m) = second.get_mut(i) {
+                        *m = v;
+                    }
+                }
+            }
+        }
+        Self { points, second, n }
+    }
+
+    /// Number of segments (gates) in a lap.
+    pub fn segments(&self) -> usize {
+        self.n
+    }
+
+    fn knot(&self, i: usize) -> (Vec3, Vec3) {
+        let i = i % self.n.max(1);
+        (
+            self.points.get(i).copied().unwrap_or(Vec3::ZERO),
+            self.second.get(i).copied().unwrap_or(Vec3::ZERO),
+        )
+    }
+
+    fn split(&self, s: f32) -> (usize, f32) {
+        let n = self.n.max(1) as f32;
+        let s = s - libm::floorf(s / n) * n;
+        let k = (libm::floorf(s) as usize).min(self.n.saturating_sub(1));
+        (k, s - k as f32)
+    }
+
+    /// The point at parameter `s` (m, world), any real `s` (taken modulo a lap).
+    pub fn point(&self, s: f32) -> Vec3 {
+        let (k, t) = self.split(s);
+        let ((p0, m0), (p1, m1)) = (self.knot(k), self.knot(k + 1));
+        let u = 1.0 - t;
+        p0.scale(u) + p1.scale(t) + m0.scale((u * u * u - u) / 6.0) + m1.scale((t * t * t - t) / 6.0)
+    }
+
+    /// The derivative dP/ds at parameter `s` (m per parameter unit).
+    pub fn tangent(&self, s: f32) -> Vec3 {
+        let (k, t) = self.split(s);
+        let ((p0, m0), (p1, m1)) = (self.knot(k), self.knot(k + 1));
+        let u = 1.0 - t;
+        (p1 - p0) + m0.scale(-(3.0 * u * u - 1.0) / 6.0) + m1.scale((3.0 * t * t - 1.0) / 6.0)
+    }
+
+    /// The parameter of the point of segment `segment` nearest to `p_m` (a coarse scan then
+    /// a refinement; exact to about 1e-3 of a segment).
+    pub fn nearest_on_segment(&self, segment: usize, p_m: Vec3) -> f32 {
+        let base = (segment % self.n.max(1)) as f32;
+        let dist = |s: f32| (self.point(s) - p_m).dot(self.point(s) - p_m);
+        let mut best = (0.0f32, dist(base));
+        for i in 1..=32 {
+            let t = i as f32 / 32.0;
+            let d = dist(base + t);
+            if d < best.1 {
+                best = (t, d);
+            }
+        }
+        let (mut lo, mut hi) = ((best.0 - 1.0 / 32.0).max(0.0), (best.0 + 1.0 / 32.0).min(1.0));
+        for _ in 0..12 {
+            let (a, b) = (lo + (hi - lo) / 3.0, hi - (hi - lo) / 3.0);
+            if dist(base + a) < dist(base + b) { hi = b } else { lo = a }
+        }
+        base + 0.5 * (lo + hi)
+    }
+
+    /// Arc length of segment `segment` (m), as a 256-chord polyline (error below 1 mm).
+    pub fn segment_length_m(&self, segment: usize) -> f32 {
+        let base = (segment % self.n.max(1)) as f32;
+        let steps = 256;
+        let mut len = 0.0;
+        let mut prev = self.point(base);
+        for i in 1..=steps {
+            let p = self.point(base + i as f32 / steps as f32);
+            len += (p - prev).norm();
+            prev = p;
+        }
+        len
+    }
+
+    /// Length of one lap (m).
+    pub fn length_m(&self) -> f32 {
+        (0..self.n).map(|k| self.segment_length_m(k)).sum()
     }
 }
 
@@ -262,5 +384,182 @@ impl CrashRules {
     /// True when two drones at `a_m` and `b_m` are too close.
     pub fn too_close(&self, a_m: Vec3, b_m: Vec3) -> bool {
         (a_m - b_m).norm() < self.min_separation_m
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    fn deg(r: f32) -> f32 {
+        r.to_degrees()
+    }
+
+    #[test]
+    fn figure_eight_frames_are_the_spec_table() {
+        let t = Track::figure_eight();
+        let headings = [0.0, -39.81, -140.19, 180.0, -140.19, -39.81];
+        for (i, (g, h)) in t.gates().iter().zip(headings).enumerate() {
+            assert!((g.frame.norm_squared() - 1.0).abs() < 1e-6, "g{i} not unit");
+            let got = deg(g.frame.heading_rad());
+            let diff = (got - h + 540.0) % 360.0 - 180.0;
+            assert!(diff.abs() < 0.05, "g{i}: heading {got} vs {h}");
+            assert!(g.forward().z.abs() < 1e-4, "g{i} forward is horizontal");
+            assert_eq!(g.center_m.z, 1.0);
+        }
+        // g1 and g2 are upside down: their z axis points down.
+        for i in [1, 2] {
+            assert!(t.gate(i).frame.rotate(Vec3::Z).z < -0.999, "g{i} upside down");
+        }
+        for i in [0, 3, 4, 5] {
+            assert!(t.gate(i).frame.rotate(Vec3::Z).z > 0.999, "g{i} upright");
+        }
+    }
+
+    #[test]
+    fn straight_through_the_centre_passes() {
+        let g = Track::figure_eight().gate(0);
+        let c = g.crossing(Vec3::new(-0.5, 0.0, 1.0), Vec3::new(0.5, 0.0, 1.0), 0.8);
+        assert_eq!(c, GateCrossing::Passed { crossing_m: Vec3::new(0.0, 0.0, 0.0) });
+    }
+
+    #[test]
+    fn crossing_outside_the_opening_is_a_collision() {
+        let g = Track::figure_eight().gate(0);
+        for (y, z) in [(0.9, 1.0), (0.0, 1.85), (-3.0, 1.0), (0.0, 0.15)] {
+            let c = g.crossing(Vec3::new(-0.5, y, z), Vec3::new(0.5, y, z), 0.8);
+            assert!(matches!(c, GateCrossing::Collided { .. }), "({y}, {z}): {c:?}");
+        }
+    }
+
+    #[test]
+    fn back_to_front_and_parallel_moves_are_not_events() {
+        let g = Track::figure_eight().gate(0);
+        assert_eq!(g.crossing(Vec3::new(0.5, 0.0, 1.0), Vec3::new(-0.5, 0.0, 1.0), 0.8), GateCrossing::None);
+        assert_eq!(g.crossing(Vec3::new(-0.5, 0.0, 1.0), Vec3::new(-0.5, 3.0, 1.0), 0.8), GateCrossing::None);
+        assert_eq!(g.crossing(Vec3::new(-2.0, 0.0, 1.0), Vec3::new(-0.1, 0.0, 1.0), 0.8), GateCrossing::None);
+    }
+
+    /// Regression for the paper's end-point test: a fast drone whose position after the step
+    /// lies outside the opening's square, but whose path crossed the plane inside it, passed.
+    #[test]
+    fn crossing_between_two_steps_is_judged_at_the_plane() {
+        let g = Track::figure_eight().gate(0);
+        // 20 m/s for 20 ms: 0.4 m per step, crossing at y = 0.625, ending at y = 1.0.
+        let c = g.crossing(Vec3::new(-0.1, 0.5, 1.0), Vec3::new(0.3, 1.0, 1.0), 0.8);
+        assert!(matches!(c, GateCrossing::Passed { crossing_m } if (crossing_m.y - 0.625).abs() < 1e-5));
+        // ... and the converse: ending inside the square after crossing outside it.
+        let c = g.crossing(Vec3::new(-0.1, 1.2, 1.0), Vec3::new(0.3, 0.0, 1.0), 0.8);
+        assert!(matches!(c, GateCrossing::Collided { .. }), "{c:?}");
+    }
+
+    #[test]
+    fn upside_down_gate_is_passed_along_its_own_axis() {
+        let t = Track::figure_eight();
+        let g = t.gate(1);
+        let before = g.to_world_frame(Vec3::new(-0.3, 0.2, -0.3));
+        let after = g.to_world_frame(Vec3::new(0.3, 0.2, -0.3));
+        assert!(matches!(g.crossing(before, after, 0.8), GateCrossing::Passed { .. }));
+        assert_eq!(g.crossing(after, before, 0.8), GateCrossing::None);
+    }
+
+    #[test]
+    fn a_lap_through_every_gate_in_order_advances_the_target_around() {
+        let t = Track::figure_eight();
+        let mut p = GateProgress::targeting(0);
+        for lap in 0..2 {
+            for i in 0..t.len() {
+                let g = t.gate(i);
+                let e = p.advance(&t, g.to_world_frame(Vec3::new(-0.2, 0.1, 0.1)), g.to_world_frame(Vec3::new(0.2, 0.1, 0.1)));
+                assert!(matches!(e, GateEvent::Passed { gate, .. } if gate == i), "lap {lap} gate {i}: {e:?}");
+            }
+        }
+        assert_eq!(p, GateProgress { target: 0, gates_passed: 12 });
+    }
+
+    #[test]
+    fn passing_a_gate_that_is_not_the_target_is_no_event() {
+        // g3 sits at g0's centre facing the other way: flying g0's direction while targeting
+        // g3 is neither a pass nor a crash.
+        let t = Track::figure_eight();
+        let mut p = GateProgress::targeting(3);
+        let e = p.advance(&t, Vec3::new(-0.3, 0.0, 1.0), Vec3::new(0.3, 0.0, 1.0));
+        assert_eq!(e, GateEvent::None);
+        assert_eq!(p.target, 3);
+    }
+
+    #[test]
+    fn crash_rules() {
+        let r = CrashRules::STAGE1;
+        assert!(r.below_ground(Vec3::new(0.0, 0.0, 0.05)));
+        assert!(!r.below_ground(Vec3::new(0.0, 0.0, 0.15)));
+        assert!(r.out_of_bounds(Vec3::new(0.0, 0.0, 1.0), Vec3::new(25.5, 0.0, 1.0)));
+        assert!(!r.out_of_bounds(Vec3::new(0.0, 0.0, 1.0), Vec3::new(24.5, -24.0, 1.0)));
+        assert!(r.out_of_bounds(Vec3::ZERO, Vec3::new(f32::NAN, 0.0, 0.0)));
+        assert!(CrashRules::STAGE2.out_of_bounds(Vec3::ZERO, Vec3::new(0.0, 15.5, 0.0)));
+        assert!(r.too_close(Vec3::ZERO, Vec3::new(0.1, 0.1, 0.0)));
+        assert!(!r.too_close(Vec3::ZERO, Vec3::new(0.2, 0.1, 0.0)));
+    }
+
+    #[test]
+    fn centerline_is_the_papers_spline() {
+        let t = Track::figure_eight();
+        let c = Centerline::new(&t);
+        // SPEC: "The centreline is about 68.7 m long" (scipy's periodic CubicSpline: 68.656).
+        assert!((c.length_m() - 68.656).abs() < 0.02, "{}", c.length_m());
+        for (k, g) in t.gates().iter().enumerate() {
+            assert!((c.point(k as f32) - g.center_m).norm() < 1e-4, "passes g{k}");
+        }
+        // The spline's headings at g1, g2, g4, g5 are the gate headings (g0 and g3 overridden).
+        for k in [1, 2, 4, 5] {
+            let d = c.tangent(k as f32);
+            let spline = libm::atan2f(d.y, d.x);
+            let gate = t.gate(k).frame.heading_rad();
+            assert!((spline - gate).abs() < 2e-3, "g{k}: {} vs {}", deg(spline), deg(gate));
+        }
+        // C1 continuity at the knots.
+        for k in 0..6 {
+            let s = k as f32;
+            assert!((c.tangent(s - 1e-4) - c.tangent(s + 1e-4)).norm() < 1e-2);
+        }
+        // The nearest point of a point on the line is itself.
+        let s = c.nearest_on_segment(1, c.point(1.37));
+        assert!((s - 1.37).abs() < 2e-3, "{s}");
+    }
+
+    #[test]
+    fn empty_track_is_refused() {
+        assert_eq!(Track::new(&[], 0.8).err(), Some(TrackError::NoGates));
+    }
+
+    proptest! {
+        #[test]
+        fn gate_frame_round_trips(i in 0usize..6, x in -30.0f32..30.0, y in -30.0f32..30.0, z in -5.0f32..5.0) {
+            let g = Track::figure_eight().gate(i);
+            let p = Vec3::new(x, y, z);
+            let back = g.to_world_frame(g.to_gate_frame(p));
+            prop_assert!((back - p).norm() < 1e-4);
+        }
+
+        #[test]
+        fn crossing_point_lies_on_the_segment_and_the_plane(
+            i in 0usize..6,
+            a in (-3.0f32..-0.01, -2.0f32..2.0, -2.0f32..2.0),
+            b in (0.0f32..3.0, -2.0f32..2.0, -2.0f32..2.0),
+        ) {
+            let g = Track::figure_eight().gate(i);
+            let from = g.to_world_frame(Vec3::new(a.0, a.1, a.2));
+            let to = g.to_world_frame(Vec3::new(b.0, b.1, b.2));
+            let (p, inside) = match g.crossing(from, to, 0.8) {
+                GateCrossing::Passed { crossing_m } => (crossing_m, true),
+                GateCrossing::Collided { crossing_m } => (crossing_m, false),
+                GateCrossing::None => return Err(TestCaseError::fail("front-to-back segment not seen")),
+            };
+            let t = -a.0 / (b.0 - a.0);
+            prop_assert!((p.y - (a.1 + t * (b.1 - a.1))).abs() < 1e-3);
+            prop_assert!((p.z - (a.2 + t * (b.2 - a.2))).abs() < 1e-3);
+            prop_assert_eq!(inside, p.y.abs() < 0.8 && p.z.abs() < 0.8);
+        }
     }
 }
