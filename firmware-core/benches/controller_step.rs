@@ -1,0 +1,48 @@
+//! One `Controller::step` on the host for Table 1 rows A (MLP 2 × 128) and G (2-layer LSTM
+//! + 4-layer MLP): gate bookkeeping, observation, inference, action map. Seeded synthetic
+//! weights (the cost does not depend on their values).
+//!
+//! `cargo bench -p firmware-core --bench controller_step`
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use firmware_core::blob::AlignedBytes;
+use firmware_core::math::{Quat, Vec3};
+use firmware_core::policy::TableRow;
+use firmware_core::synthetic;
+use firmware_core::track::Track;
+use firmware_core::vehicle::VehicleState;
+use firmware_core::Controller;
+use std::hint::black_box;
+
+fn states() -> Vec<VehicleState> {
+    (0..64)
+        .map(|i| {
+            let t = i as f32 * 0.02;
+            VehicleState {
+                position_m: Vec3::new(-3.0 + 5.0 * t, 0.3 * t, 1.0),
+                attitude: Quat::from_axis_angle(Vec3::new(0.6, 0.8, 0.0), 0.2 * t).normalized(),
+                velocity_mps: Vec3::new(5.0, 0.3, 0.1),
+                body_rates_radps: Vec3::new(0.1, -0.2, 0.05),
+            }
+        })
+        .collect()
+}
+
+fn bench(c: &mut Criterion) {
+    let own = states();
+    let opponent = VehicleState::at_rest(Vec3::new(-1.0, 0.5, 1.0), Quat::IDENTITY);
+    for row in [TableRow::A, TableRow::G] {
+        let bytes = AlignedBytes::new(&synthetic::blob(row, 1).expect("encode"));
+        let mut ctrl = Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
+        let mut i = 0;
+        c.bench_function(&format!("controller_step_{}", row.letter()), |b| {
+            b.iter(|| {
+                i = (i + 1) % own.len();
+                black_box(ctrl.step(black_box(&own[i]), Some(&opponent)))
+            })
+        });
+    }
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
