@@ -10,3 +10,4 @@
 #![deny(missing_docs)]
 
 pub mod dynamics;
+pub mod time_trial;
