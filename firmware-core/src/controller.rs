@@ -86,9 +86,10 @@ pub struct StepOutput {
 
 /// A learned racing controller running a blob's policy.
 ///
-/// The fail-safe is [`MotorCommand::STOP`] (all motors off, as a flight controller disarms):
-/// on a fault the recurrent state, previous action and target gate are left as they were, and
-/// [`Controller::fault_count`] counts the event.
+/// The fail-safe is [`MotorCommand::STOP`] (all motors off, as a flight controller disarms).
+/// On an input fault the recurrent state, previous action and target gate are left as they
+/// were; a non-finite policy output (possible only with weights near `f32::MAX`) also zeroes
+/// the recurrent state. [`Controller::fault_count`] counts the events.
 #[derive(Clone, Debug)]
 pub struct Controller<'w> {
     policy: Policy<'w>,
@@ -102,6 +103,14 @@ pub struct Controller<'w> {
     previous_position: Option<Vec3>,
     fault_count: u32,
 }
+
+/// RAM of a row-G controller (bytes): the controller itself (recurrent state, weight views,
+/// bookkeeping) plus the activations one step keeps on the stack.
+pub const CONTROLLER_G_RAM_BYTES: usize =
+    core::mem::size_of::<Controller<'static>>() + crate::policy::PolicyG::SCRATCH_BYTES;
+
+// The recurrent controller's RAM budget: state plus scratch <= 8 KB.
+const _: () = assert!(CONTROLLER_G_RAM_BYTES <= 8 * 1024);
 
 impl<'w> Controller<'w> {
     /// A controller for `blob` on `track`, stepped every `control_period_ns`. A recurrent
@@ -169,15 +178,13 @@ impl<'w> Controller<'w> {
             }
         };
         self.previous_position = Some(own.position_m);
-        // 40 infer
-        let mut next_state = self.state;
-        let Some(mean) = self.policy.act(&obs, &mut next_state) else {
+        // 40 infer (in place: no copy of the recurrent state on the stack)
+        let mean = self.policy.act(&obs, &mut self.state);
+        let Some(mean) = mean.filter(|m| m.iter().all(|a| a.is_finite())) else {
+            // Only weights near f32::MAX can overflow; a poisoned state would stay poisoned.
+            self.state = self.policy.initial_state();
             return self.fail_safe(StepFault::NonFiniteAction, gate_event);
         };
-        if !mean.iter().all(|a| a.is_finite()) {
-            return self.fail_safe(StepFault::NonFiniteAction, gate_event);
-        }
-        self.state = next_state;
         // 50 clip, 60 map to rpm
         let action = mean.map(|a| a.clamp(-1.0, 1.0));
         self.previous_action = action;
@@ -212,5 +219,23 @@ impl<'w> Controller<'w> {
     /// Steps that fell back to the fail-safe since construction.
     pub fn fault_count(&self) -> u32 {
         self.fault_count
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ram_budget_of_the_recurrent_controller() {
+        println!(
+            "controller {} B + step scratch {} B = {} B (budget 8192)",
+            core::mem::size_of::<Controller<'static>>(),
+            crate::policy::PolicyG::SCRATCH_BYTES,
+            CONTROLLER_G_RAM_BYTES
+        );
+        // The recurrent state alone is 2 layers x (h + c) x 128 x 4 B.
+        assert!(core::mem::size_of::<PolicyState>() >= 2 * 2 * 128 * 4);
+        assert!(CONTROLLER_G_RAM_BYTES >= core::mem::size_of::<PolicyState>());
     }
 }
