@@ -27,6 +27,16 @@ impl Pilot for BaselineController<'_> {
     }
 }
 
+/// A learned controller flies alone (a time trial): it sees no opponent.
+impl Pilot for firmware_core::Controller<'_> {
+    fn command(&mut self, own: &VehicleState) -> MotorCommand {
+        self.step(own, None).command
+    }
+    fn reset(&mut self, target_gate: usize) {
+        firmware_core::Controller::reset(self, target_gate);
+    }
+}
+
 /// Stage-1 spawn of the paper's code: (−1, −1, 1) m, level, at rest, first target g0.
 pub fn stage1_spawn() -> VehicleState {
     VehicleState::at_rest(Vec3::new(-1.0, -1.0, 1.0), Quat::IDENTITY)
