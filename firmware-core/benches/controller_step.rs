@@ -5,13 +5,13 @@
 //! `cargo bench -p firmware-core --bench controller_step`
 
 use criterion::{Criterion, criterion_group, criterion_main};
+use firmware_core::Controller;
 use firmware_core::blob::AlignedBytes;
 use firmware_core::math::{Quat, Vec3};
 use firmware_core::policy::TableRow;
 use firmware_core::synthetic;
 use firmware_core::track::Track;
 use firmware_core::vehicle::VehicleState;
-use firmware_core::Controller;
 use std::hint::black_box;
 
 fn states() -> Vec<VehicleState> {
@@ -33,7 +33,8 @@ fn bench(c: &mut Criterion) {
     let opponent = VehicleState::at_rest(Vec3::new(-1.0, 0.5, 1.0), Quat::IDENTITY);
     for row in [TableRow::A, TableRow::G] {
         let bytes = AlignedBytes::new(&synthetic::blob(row, 1).expect("encode"));
-        let mut ctrl = Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
+        let mut ctrl =
+            Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
         let mut i = 0;
         c.bench_function(&format!("controller_step_{}", row.letter()), |b| {
             b.iter(|| {

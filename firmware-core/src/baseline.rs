@@ -172,13 +172,19 @@ impl<'t> BaselineController<'t> {
         let distance = to_carrot.norm().max(1e-3);
         // Cruise speed toward the carrot, slowing only when the carrot is closer than the
         // lookahead (after a respawn or near the end of a segment).
-        let speed = c.cruise_speed_mps.min(c.position_gain_per_s * distance.max(lookahead_m));
+        let speed = c
+            .cruise_speed_mps
+            .min(c.position_gain_per_s * distance.max(lookahead_m));
         let velocity_sp = to_carrot.scale(speed / distance);
 
         // 40 velocity → acceleration
         let mut accel = (velocity_sp - own.velocity_mps).scale(c.velocity_gain_per_s);
         let horizontal = Vec3::new(accel.x, accel.y, 0.0).limit_norm(c.max_horizontal_accel_mps2);
-        accel = Vec3::new(horizontal.x, horizontal.y, accel.z.clamp(-0.8 * Cf2x::GRAVITY_MPS2, 8.0));
+        accel = Vec3::new(
+            horizontal.x,
+            horizontal.y,
+            accel.z.clamp(-0.8 * Cf2x::GRAVITY_MPS2, 8.0),
+        );
 
         // 50 thrust vector with a tilt limit
         let mut thrust = accel + Vec3::new(0.0, 0.0, Cf2x::GRAVITY_MPS2);

@@ -21,7 +21,7 @@
 //! fields), `f32` is 4 bytes little-endian, enums are a varint variant index, a `Vec` or
 //! `String` is a varint length then its items, a struct is its fields in order.
 //! 1. `architecture`: `obs_dim` u16, `lstm_layers` u8 (one raw byte), `lstm_hidden` u16,
-//!    `mlp_hidden` Vec<u16> (≤ 6), `action_dim` u8, `activation` enum {0: Tanh}.
+//!    `mlp_hidden` `Vec<u16>` (≤ 6), `action_dim` u8, `activation` enum {0: Tanh}.
 //! 2. `observation`: `version` u16, `layout` enum {0: TimeTrial17, 1: OpponentPosition20,
 //!    2: FullOpponent30}, then seven f32: gate position scale (m), velocity scale (m/s), body
 //!    rate scale (rad/s), opponent position (m), velocity (m/s) and rate (rad/s) scales, clip.
@@ -169,21 +169,32 @@ impl core::fmt::Display for BlobError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         match *self {
             Self::Misaligned { offset_mod_4 } => {
-                write!(f, "blob starts at an address ≡ {offset_mod_4} (mod 4); it must be 4-byte aligned")
+                write!(
+                    f,
+                    "blob starts at an address ≡ {offset_mod_4} (mod 4); it must be 4-byte aligned"
+                )
             }
             Self::Truncated { needed, available } => {
                 write!(f, "blob truncated: needs {needed} bytes, has {available}")
             }
             Self::BadMagic => f.write_str("not a weight blob (bad magic; expected \"OVTK\")"),
             Self::UnsupportedVersion(v) => {
-                write!(f, "blob format version {v} is not supported (this build reads {FORMAT_VERSION})")
+                write!(
+                    f,
+                    "blob format version {v} is not supported (this build reads {FORMAT_VERSION})"
+                )
             }
             Self::MalformedHeader => f.write_str("blob header does not decode"),
             Self::NonZeroPadding => f.write_str("blob padding bytes are not zero"),
             Self::CrcMismatch { stored, computed } => {
-                write!(f, "blob CRC mismatch: stored {stored:#010x}, computed {computed:#010x}")
+                write!(
+                    f,
+                    "blob CRC mismatch: stored {stored:#010x}, computed {computed:#010x}"
+                )
             }
-            Self::UnsupportedDtype => f.write_str("blob weight dtype is not supported by this build"),
+            Self::UnsupportedDtype => {
+                f.write_str("blob weight dtype is not supported by this build")
+            }
             Self::ObservationSpecMismatch => {
                 f.write_str("blob observation spec does not match this observation pipeline")
             }
@@ -192,7 +203,10 @@ impl core::fmt::Display for BlobError {
             }
             Self::InvalidActionMap => f.write_str("blob action map is not finite and positive"),
             Self::InvalidControlPeriod => f.write_str("blob control period is zero"),
-            Self::PayloadSizeMismatch { expected_floats, actual_floats } => write!(
+            Self::PayloadSizeMismatch {
+                expected_floats,
+                actual_floats,
+            } => write!(
                 f,
                 "blob payload holds {actual_floats} weights, the architecture needs {expected_floats}"
             ),
@@ -202,7 +216,9 @@ impl core::fmt::Display for BlobError {
 }
 
 #[cfg(target_endian = "big")]
-compile_error!("blobs store little-endian f32 and are read in place: big-endian targets are not supported");
+compile_error!(
+    "blobs store little-endian f32 and are read in place: big-endian targets are not supported"
+);
 
 /// A validated blob, borrowing its bytes.
 #[derive(Clone, Debug)]
@@ -219,7 +235,12 @@ fn read_u16(bytes: &[u8], at: usize) -> Option<u16> {
 
 fn read_u32(bytes: &[u8], at: usize) -> Option<u32> {
     let b = bytes.get(at..at + 4)?;
-    Some(u32::from_le_bytes([*b.first()?, *b.get(1)?, *b.get(2)?, *b.get(3)?]))
+    Some(u32::from_le_bytes([
+        *b.first()?,
+        *b.get(1)?,
+        *b.get(2)?,
+        *b.get(3)?,
+    ]))
 }
 
 /// Views 4-byte-aligned little-endian bytes as `f32` without copying.
@@ -242,7 +263,10 @@ impl<'w> Blob<'w> {
         if offset_mod_4 != 0 {
             return Err(BlobError::Misaligned { offset_mod_4 });
         }
-        let truncated = |needed| BlobError::Truncated { needed, available: bytes.len() };
+        let truncated = |needed| BlobError::Truncated {
+            needed,
+            available: bytes.len(),
+        };
         if bytes.len() < PREFIX_LEN {
             return Err(truncated(PREFIX_LEN));
         }
@@ -255,7 +279,9 @@ impl<'w> Blob<'w> {
         }
         let header_len = usize::from(read_u16(bytes, 6).ok_or(truncated(PREFIX_LEN))?);
         let header_end = PREFIX_LEN + header_len;
-        let header_bytes = bytes.get(PREFIX_LEN..header_end).ok_or(truncated(header_end))?;
+        let header_bytes = bytes
+            .get(PREFIX_LEN..header_end)
+            .ok_or(truncated(header_end))?;
         let (header, rest) = postcard::take_from_bytes::<BlobHeader>(header_bytes)
             .map_err(|_| BlobError::MalformedHeader)?;
         if !rest.is_empty() {
@@ -263,8 +289,12 @@ impl<'w> Blob<'w> {
         }
         let payload_offset = header_end.next_multiple_of(4);
         let payload_len = header.payload_len as usize;
-        let payload_end = payload_offset.checked_add(payload_len).ok_or(BlobError::MalformedHeader)?;
-        let total = payload_end.checked_add(CRC_LEN).ok_or(BlobError::MalformedHeader)?;
+        let payload_end = payload_offset
+            .checked_add(payload_len)
+            .ok_or(BlobError::MalformedHeader)?;
+        let total = payload_end
+            .checked_add(CRC_LEN)
+            .ok_or(BlobError::MalformedHeader)?;
         if bytes.len() < total {
             return Err(truncated(total));
         }
@@ -274,7 +304,9 @@ impl<'w> Blob<'w> {
         if stored != computed {
             return Err(BlobError::CrcMismatch { stored, computed });
         }
-        let padding = bytes.get(header_end..payload_offset).ok_or(truncated(total))?;
+        let padding = bytes
+            .get(header_end..payload_offset)
+            .ok_or(truncated(total))?;
         if padding.iter().any(|&b| b != 0) {
             return Err(BlobError::NonZeroPadding);
         }
@@ -295,17 +327,25 @@ impl<'w> Blob<'w> {
             return Err(BlobError::InvalidControlPeriod);
         }
         let expected_floats = header.architecture.param_count();
-        if payload_len % 4 != 0 || payload_len / 4 != expected_floats {
+        if !payload_len.is_multiple_of(4) || payload_len / 4 != expected_floats {
             return Err(BlobError::PayloadSizeMismatch {
                 expected_floats,
                 actual_floats: payload_len / 4,
             });
         }
-        let payload = as_f32s(bytes.get(payload_offset..payload_end).ok_or(truncated(total))?)?;
+        let payload = as_f32s(
+            bytes
+                .get(payload_offset..payload_end)
+                .ok_or(truncated(total))?,
+        )?;
         if let Some(index) = payload.iter().position(|w| !w.is_finite()) {
             return Err(BlobError::NonFiniteWeight { index });
         }
-        let blob = Self { header, payload, len: total };
+        let blob = Self {
+            header,
+            payload,
+            len: total,
+        };
         // The architecture must be one we can run.
         blob.policy()?;
         Ok(blob)
@@ -389,7 +429,10 @@ mod encode_std {
     pub fn encode(header: &BlobHeader, weights: &[f32]) -> Result<Vec<u8>, EncodeError> {
         let expected = header.architecture.param_count();
         if weights.len() != expected {
-            return Err(EncodeError::WrongWeightCount { expected, actual: weights.len() });
+            return Err(EncodeError::WrongWeightCount {
+                expected,
+                actual: weights.len(),
+            });
         }
         if let Some(index) = weights.iter().position(|w| !w.is_finite()) {
             return Err(EncodeError::NonFiniteWeight { index });
@@ -432,7 +475,10 @@ mod encode_std {
                 }
                 *w = u32::from_ne_bytes(b);
             }
-            Self { words, len: bytes.len() }
+            Self {
+                words,
+                len: bytes.len(),
+            }
         }
 
         /// The bytes.
@@ -445,7 +491,9 @@ mod encode_std {
         /// Mutable bytes (for corruption tests).
         pub fn as_bytes_mut(&mut self) -> &mut [u8] {
             // SAFETY: as in `as_bytes`, with unique access through `&mut self`.
-            unsafe { core::slice::from_raw_parts_mut(self.words.as_mut_ptr().cast::<u8>(), self.len) }
+            unsafe {
+                core::slice::from_raw_parts_mut(self.words.as_mut_ptr().cast::<u8>(), self.len)
+            }
         }
     }
 }

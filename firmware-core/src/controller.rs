@@ -38,7 +38,10 @@ impl core::fmt::Display for ControllerError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         match self {
             Self::Blob(e) => e.fmt(f),
-            Self::RateMismatch { trained_ns, requested_ns } => write!(
+            Self::RateMismatch {
+                trained_ns,
+                requested_ns,
+            } => write!(
                 f,
                 "recurrent policy trained at a {trained_ns} ns control period cannot run at {requested_ns} ns"
             ),
@@ -115,7 +118,11 @@ const _: () = assert!(CONTROLLER_G_RAM_BYTES <= 8 * 1024);
 impl<'w> Controller<'w> {
     /// A controller for `blob` on `track`, stepped every `control_period_ns`. A recurrent
     /// policy refuses any period but the one it was trained at.
-    pub fn new(blob: &Blob<'w>, track: Track<'w>, control_period_ns: u32) -> Result<Self, ControllerError> {
+    pub fn new(
+        blob: &Blob<'w>,
+        track: Track<'w>,
+        control_period_ns: u32,
+    ) -> Result<Self, ControllerError> {
         let header = blob.header();
         let policy = blob.policy()?;
         if policy.is_recurrent() && control_period_ns != header.control_period_ns {
@@ -166,7 +173,10 @@ impl<'w> Controller<'w> {
         };
         let gate = self.track.gate(self.progress.target);
         // 30 observe
-        let obs = match self.observation.observe(own, &gate, &self.previous_action, opponent) {
+        let obs = match self
+            .observation
+            .observe(own, &gate, &self.previous_action, opponent)
+        {
             Ok(obs) => obs,
             Err(e) => {
                 let fault = match e {
@@ -188,12 +198,22 @@ impl<'w> Controller<'w> {
         // 50 clip, 60 map to rpm
         let action = mean.map(|a| a.clamp(-1.0, 1.0));
         self.previous_action = action;
-        StepOutput { command: self.action_map.command(&action), action, fault: None, gate_event }
+        StepOutput {
+            command: self.action_map.command(&action),
+            action,
+            fault: None,
+            gate_event,
+        }
     }
 
     fn fail_safe(&mut self, fault: StepFault, gate_event: GateEvent) -> StepOutput {
         self.fault_count = self.fault_count.saturating_add(1);
-        StepOutput { command: MotorCommand::STOP, action: [0.0; ACTION_DIM], fault: Some(fault), gate_event }
+        StepOutput {
+            command: MotorCommand::STOP,
+            action: [0.0; ACTION_DIM],
+            fault: Some(fault),
+            gate_event,
+        }
     }
 
     /// The policy network.

@@ -17,7 +17,10 @@
 //! Feature `std` adds the blob encoder and [`blob::AlignedBytes`] for host tools.
 #![cfg_attr(not(test), no_std)]
 #![deny(missing_docs)]
-#![cfg_attr(not(test), deny(clippy::unwrap_used, clippy::expect_used, clippy::panic))]
+#![cfg_attr(
+    not(test),
+    deny(clippy::unwrap_used, clippy::expect_used, clippy::panic)
+)]
 #![cfg_attr(not(test), deny(clippy::indexing_slicing))]
 
 pub mod baseline;
@@ -25,11 +28,11 @@ pub mod blob;
 pub mod controller;
 pub mod crc32;
 pub mod math;
-#[cfg(feature = "std")]
-pub mod synthetic;
 pub mod nn;
 pub mod observation;
 pub mod policy;
+#[cfg(feature = "std")]
+pub mod synthetic;
 pub mod track;
 pub mod vehicle;
 

@@ -248,7 +248,9 @@ mod tests {
 
     fn unit_quat() -> impl Strategy<Value = Quat> {
         (-1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0, -1.0f32..1.0)
-            .prop_filter("non-degenerate", |(w, x, y, z)| w * w + x * x + y * y + z * z > 0.01)
+            .prop_filter("non-degenerate", |(w, x, y, z)| {
+                w * w + x * x + y * y + z * z > 0.01
+            })
             .prop_map(|(w, x, y, z)| Quat::new(w, x, y, z).normalized())
     }
 
@@ -305,6 +307,9 @@ mod tests {
     #[test]
     fn normalizing_garbage_gives_identity() {
         assert_eq!(Quat::new(0.0, 0.0, 0.0, 0.0).normalized(), Quat::IDENTITY);
-        assert_eq!(Quat::new(f32::NAN, 0.0, 0.0, 0.0).normalized(), Quat::IDENTITY);
+        assert_eq!(
+            Quat::new(f32::NAN, 0.0, 0.0, 0.0).normalized(),
+            Quat::IDENTITY
+        );
     }
 }

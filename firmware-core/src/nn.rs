@@ -31,7 +31,10 @@ pub struct WeightReader<'w> {
 impl<'w> WeightReader<'w> {
     /// A reader at the start of `payload`.
     pub fn new(payload: &'w [f32]) -> Self {
-        Self { rest: payload, taken: 0 }
+        Self {
+            rest: payload,
+            taken: 0,
+        }
     }
 
     /// The next `n` values.
@@ -135,7 +138,11 @@ impl<'w, const IN: usize, const OUT: usize> Linear<'w, IN, OUT> {
     /// `y = W x + b`.
     #[inline]
     pub fn forward(&self, x: &[f32; IN], y: &mut [f32; OUT]) {
-        for ((yo, row), b) in y.iter_mut().zip(self.weight.chunks_exact(IN)).zip(self.bias) {
+        for ((yo, row), b) in y
+            .iter_mut()
+            .zip(self.weight.chunks_exact(IN))
+            .zip(self.bias)
+        {
             *yo = dot(row, x) + b;
         }
     }
@@ -152,7 +159,10 @@ pub struct LstmLayerState<const H: usize> {
 
 impl<const H: usize> Default for LstmLayerState<H> {
     fn default() -> Self {
-        Self { h: [0.0; H], c: [0.0; H] }
+        Self {
+            h: [0.0; H],
+            c: [0.0; H],
+        }
     }
 }
 
@@ -173,7 +183,11 @@ impl<'w, const IN: usize, const H: usize> LstmCell<'w, IN, H> {
         let weight_ih = r.take(4 * H * IN)?;
         let weight_hh = r.take(4 * H * H)?;
         let bias = r.take(4 * H)?;
-        Ok(Self { weight_ih, weight_hh, bias })
+        Ok(Self {
+            weight_ih,
+            weight_hh,
+            bias,
+        })
     }
 
     /// Advances `state` by one input `x`.
@@ -219,7 +233,10 @@ pub struct LstmStackState<const H: usize, const DEEP: usize> {
 
 impl<const H: usize, const DEEP: usize> Default for LstmStackState<H, DEEP> {
     fn default() -> Self {
-        Self { first: LstmLayerState::default(), deep: [LstmLayerState::default(); DEEP] }
+        Self {
+            first: LstmLayerState::default(),
+            deep: [LstmLayerState::default(); DEEP],
+        }
     }
 }
 
@@ -240,7 +257,11 @@ impl<'w, const IN: usize, const H: usize, const DEEP: usize> LstmStack<'w, IN, H
     /// Takes the layers in order from `r`.
     pub fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError> {
         let first = LstmCell::load(r)?;
-        let empty = LstmCell { weight_ih: &[], weight_hh: &[], bias: &[] };
+        let empty = LstmCell {
+            weight_ih: &[],
+            weight_hh: &[],
+            bias: &[],
+        };
         let mut deep = [empty; DEEP];
         for cell in &mut deep {
             *cell = LstmCell::load(r)?;
@@ -285,7 +306,11 @@ impl<'w, const IN: usize, const H1: usize, const H2: usize> Head<'w, IN> for Mlp
     const SCRATCH_BYTES: usize = (H1 + H2 + ACTION_DIM) * 4;
 
     fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError> {
-        Ok(Self { l1: Linear::load(r)?, l2: Linear::load(r)?, out: Linear::load(r)? })
+        Ok(Self {
+            l1: Linear::load(r)?,
+            l2: Linear::load(r)?,
+            out: Linear::load(r)?,
+        })
     }
 
     fn forward(&self, x: &[f32; IN]) -> [f32; ACTION_DIM] {
@@ -346,8 +371,14 @@ impl<'w, const IN: usize, const H1: usize, const H2: usize, const H3: usize> Hea
 
 /// MLP head with four tanh hidden layers (rows C, D, E, G: 256, 128, 128, 64).
 #[derive(Clone, Copy, Debug)]
-pub struct Mlp4<'w, const IN: usize, const H1: usize, const H2: usize, const H3: usize, const H4: usize>
-{
+pub struct Mlp4<
+    'w,
+    const IN: usize,
+    const H1: usize,
+    const H2: usize,
+    const H3: usize,
+    const H4: usize,
+> {
     l1: Linear<'w, IN, H1>,
     l2: Linear<'w, H1, H2>,
     l3: Linear<'w, H2, H3>,
@@ -436,7 +467,10 @@ impl<'w, const IN: usize, const H: usize, const DEEP: usize, M: Head<'w, H>>
 
     /// Takes the LSTM layers, then the head, from `r`.
     pub fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError> {
-        Ok(Self { lstm: LstmStack::load(r)?, head: M::load(r)? })
+        Ok(Self {
+            lstm: LstmStack::load(r)?,
+            head: M::load(r)?,
+        })
     }
 
     /// Advances the recurrent state by `obs` and returns the Gaussian mean (unclipped).
@@ -468,7 +502,10 @@ mod tests {
             let w: [f32; 256] = core::array::from_fn(|i| (i as f32 * 0.37).sin());
             let x: [f32; 256] = core::array::from_fn(|i| (i as f32 * 0.11).cos());
             let naive: f64 = (0..n).map(|i| f64::from(w[i]) * f64::from(x[i])).sum();
-            assert!((f64::from(dot(&w[..n], &x[..n])) - naive).abs() < 1e-4, "n = {n}");
+            assert!(
+                (f64::from(dot(&w[..n], &x[..n])) - naive).abs() < 1e-4,
+                "n = {n}"
+            );
         }
     }
 }

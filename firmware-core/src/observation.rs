@@ -158,7 +158,10 @@ impl Observation {
         for (o, v) in out.iter_mut().zip(values) {
             *o = *v;
         }
-        Some(Self { values: out, dim: values.len() })
+        Some(Self {
+            values: out,
+            dim: values.len(),
+        })
     }
 }
 
@@ -223,18 +226,35 @@ impl ObservationSpec {
             None
         };
 
-        let mut w = Writer { values: [0.0; MAX_OBSERVATION_DIM], len: 0 };
+        let mut w = Writer {
+            values: [0.0; MAX_OBSERVATION_DIM],
+            len: 0,
+        };
         let body = own.attitude;
         let clip = self.clip;
         // 20 gate: the gate seen from the drone, in the gate frame.
-        let to_gate = target_gate.frame.inverse_rotate(target_gate.center_m - own.position_m);
-        w.vec3(to_gate.scale(1.0 / self.gate_position_scale_m).clamp_abs(clip));
+        let to_gate = target_gate
+            .frame
+            .inverse_rotate(target_gate.center_m - own.position_m);
+        w.vec3(
+            to_gate
+                .scale(1.0 / self.gate_position_scale_m)
+                .clamp_abs(clip),
+        );
         // 30 attitude
         w.quat(body);
         // 40 velocity, body frame
-        w.vec3(body.inverse_rotate(own.velocity_mps).scale(1.0 / self.velocity_scale_mps).clamp_abs(clip));
+        w.vec3(
+            body.inverse_rotate(own.velocity_mps)
+                .scale(1.0 / self.velocity_scale_mps)
+                .clamp_abs(clip),
+        );
         // 50 body rates
-        w.vec3(own.body_rates_radps.scale(1.0 / self.body_rate_scale_radps).clamp_abs(clip));
+        w.vec3(
+            own.body_rates_radps
+                .scale(1.0 / self.body_rate_scale_radps)
+                .clamp_abs(clip),
+        );
         // 60 previous action
         for &a in previous_action {
             w.push(a);
@@ -242,19 +262,32 @@ impl ObservationSpec {
         if let Some(opp) = opponent {
             // 70 opponent position, ego body frame
             let rel = body.inverse_rotate(opp.position_m - own.position_m);
-            w.vec3(rel.scale(1.0 / self.opponent_position_scale_m).clamp_abs(clip));
+            w.vec3(
+                rel.scale(1.0 / self.opponent_position_scale_m)
+                    .clamp_abs(clip),
+            );
             if self.layout == ObservationLayout::FullOpponent30 {
                 // 80 opponent attitude
                 w.quat(opp.attitude);
                 // 90 opponent velocity, ego body frame
                 let v = body.inverse_rotate(opp.velocity_mps);
-                w.vec3(v.scale(1.0 / self.opponent_velocity_scale_mps).clamp_abs(clip));
+                w.vec3(
+                    v.scale(1.0 / self.opponent_velocity_scale_mps)
+                        .clamp_abs(clip),
+                );
                 // 100 opponent angular velocity (world), in the ego body frame
                 let rates = body.inverse_rotate(opp.world_rates_radps());
-                w.vec3(rates.scale(1.0 / self.opponent_rate_scale_radps).clamp_abs(clip));
+                w.vec3(
+                    rates
+                        .scale(1.0 / self.opponent_rate_scale_radps)
+                        .clamp_abs(clip),
+                );
             }
         }
-        Ok(Observation { values: w.values, dim: w.len })
+        Ok(Observation {
+            values: w.values,
+            dim: w.len,
+        })
     }
 }
 

@@ -50,7 +50,15 @@ pub enum TableRow {
 
 impl TableRow {
     /// All rows, in order.
-    pub const ALL: [Self; 7] = [Self::A, Self::B, Self::C, Self::D, Self::E, Self::F, Self::G];
+    pub const ALL: [Self; 7] = [
+        Self::A,
+        Self::B,
+        Self::C,
+        Self::D,
+        Self::E,
+        Self::F,
+        Self::G,
+    ];
 
     /// The row's letter.
     pub const fn letter(self) -> char {
@@ -141,15 +149,38 @@ impl Architecture {
         let mut input = usize::from(self.obs_dim);
         for layer in 0..self.lstm_layers {
             let l = usize::from(layer);
-            let _ = out.push(TensorShape { kind: TensorKind::LstmWeightIh(l), rows: 4 * h, cols: input });
-            let _ = out.push(TensorShape { kind: TensorKind::LstmWeightHh(l), rows: 4 * h, cols: h });
-            let _ = out.push(TensorShape { kind: TensorKind::LstmBias(l), rows: 4 * h, cols: 0 });
+            let _ = out.push(TensorShape {
+                kind: TensorKind::LstmWeightIh(l),
+                rows: 4 * h,
+                cols: input,
+            });
+            let _ = out.push(TensorShape {
+                kind: TensorKind::LstmWeightHh(l),
+                rows: 4 * h,
+                cols: h,
+            });
+            let _ = out.push(TensorShape {
+                kind: TensorKind::LstmBias(l),
+                rows: 4 * h,
+                cols: 0,
+            });
             input = h;
         }
         let widths = self.mlp_hidden.iter().map(|&w| usize::from(w));
-        for (i, w) in widths.chain(core::iter::once(usize::from(self.action_dim))).enumerate() {
-            let _ = out.push(TensorShape { kind: TensorKind::LinearWeight(i), rows: w, cols: input });
-            let _ = out.push(TensorShape { kind: TensorKind::LinearBias(i), rows: w, cols: 0 });
+        for (i, w) in widths
+            .chain(core::iter::once(usize::from(self.action_dim)))
+            .enumerate()
+        {
+            let _ = out.push(TensorShape {
+                kind: TensorKind::LinearWeight(i),
+                rows: w,
+                cols: input,
+            });
+            let _ = out.push(TensorShape {
+                kind: TensorKind::LinearBias(i),
+                rows: w,
+                cols: 0,
+            });
             input = w;
         }
         out
@@ -185,7 +216,11 @@ pub struct TensorShape {
 impl TensorShape {
     /// Number of values.
     pub fn len(&self) -> usize {
-        if self.cols == 0 { self.rows } else { self.rows * self.cols }
+        if self.cols == 0 {
+            self.rows
+        } else {
+            self.rows * self.cols
+        }
     }
 
     /// True when the tensor holds no values.

@@ -95,7 +95,13 @@ pub fn header(row: TableRow, seed: u64) -> BlobHeader {
         action_map: ActionMap::PAPER,
         control_period_ns: crate::PAPER_CONTROL_PERIOD_NS,
         dtype: WeightDtype::F32,
-        provenance: Provenance { name, seed, iterations: 0, preset, config_hash: 0 },
+        provenance: Provenance {
+            name,
+            seed,
+            iterations: 0,
+            preset,
+            config_hash: 0,
+        },
         payload_len: 0,
     }
 }

@@ -44,7 +44,10 @@ pub enum GateCrossing {
 impl Gate {
     /// A gate at `center_m` with frame `frame` (normalised here).
     pub fn new(center_m: Vec3, frame: Quat) -> Self {
-        Self { center_m, frame: frame.normalized() }
+        Self {
+            center_m,
+            frame: frame.normalized(),
+        }
     }
 
     /// A world position expressed in the gate frame (m).
@@ -92,12 +95,30 @@ pub const FIGURE_EIGHT_GATES: usize = 6;
 /// digits (0.9403, 0.3404), whose norm is 1.000018; they are stored here divided by that norm,
 /// so every frame is a unit quaternion to f32 precision and rotations keep lengths.
 pub static FIGURE_EIGHT: [Gate; FIGURE_EIGHT_GATES] = [
-    Gate { center_m: Vec3::new(0.0, 0.0, 1.0), frame: Quat::new(1.0, 0.0, 0.0, 0.0) },
-    Gate { center_m: Vec3::new(10.0, 5.0, 1.0), frame: Quat::new(0.0, 0.940_282_96, -0.340_393_83, 0.0) },
-    Gate { center_m: Vec3::new(10.0, -5.0, 1.0), frame: Quat::new(0.0, -0.340_393_83, 0.940_282_96, 0.0) },
-    Gate { center_m: Vec3::new(0.0, 0.0, 1.0), frame: Quat::new(0.0, 0.0, 0.0, 1.0) },
-    Gate { center_m: Vec3::new(-10.0, 5.0, 1.0), frame: Quat::new(0.340_393_83, 0.0, 0.0, -0.940_282_96) },
-    Gate { center_m: Vec3::new(-10.0, -5.0, 1.0), frame: Quat::new(0.940_282_96, 0.0, 0.0, -0.340_393_83) },
+    Gate {
+        center_m: Vec3::new(0.0, 0.0, 1.0),
+        frame: Quat::new(1.0, 0.0, 0.0, 0.0),
+    },
+    Gate {
+        center_m: Vec3::new(10.0, 5.0, 1.0),
+        frame: Quat::new(0.0, 0.940_282_96, -0.340_393_83, 0.0),
+    },
+    Gate {
+        center_m: Vec3::new(10.0, -5.0, 1.0),
+        frame: Quat::new(0.0, -0.340_393_83, 0.940_282_96, 0.0),
+    },
+    Gate {
+        center_m: Vec3::new(0.0, 0.0, 1.0),
+        frame: Quat::new(0.0, 0.0, 0.0, 1.0),
+    },
+    Gate {
+        center_m: Vec3::new(-10.0, 5.0, 1.0),
+        frame: Quat::new(0.340_393_83, 0.0, 0.0, -0.940_282_96),
+    },
+    Gate {
+        center_m: Vec3::new(-10.0, -5.0, 1.0),
+        frame: Quat::new(0.940_282_96, 0.0, 0.0, -0.340_393_83),
+    },
 ];
 
 /// A closed track: gates in racing order, the last followed by the first.
@@ -127,7 +148,10 @@ impl core::fmt::Display for TrackError {
 impl Track<'static> {
     /// The paper's figure-8 with its 1.6 m openings.
     pub const fn figure_eight() -> Self {
-        Self { gates: &FIGURE_EIGHT, opening_half_size_m: 0.8 }
+        Self {
+            gates: &FIGURE_EIGHT,
+            opening_half_size_m: 0.8,
+        }
     }
 }
 
@@ -143,7 +167,10 @@ impl<'a> Track<'a> {
         if gates.is_empty() {
             return Err(TrackError::NoGates);
         }
-        Ok(Self { gates, opening_half_size_m })
+        Ok(Self {
+            gates,
+            opening_half_size_m,
+        })
     }
 
     /// The gates in racing order.
@@ -164,7 +191,10 @@ impl<'a> Track<'a> {
     /// Gate `index` modulo the number of gates (a valid gate for any index).
     pub fn gate(&self, index: usize) -> Gate {
         let n = self.gates.len().max(1);
-        self.gates.get(index % n).copied().unwrap_or(Gate::new(Vec3::ZERO, Quat::IDENTITY))
+        self.gates
+            .get(index % n)
+            .copied()
+            .unwrap_or(Gate::new(Vec3::ZERO, Quat::IDENTITY))
     }
 
     /// The index of the gate after `index`.
@@ -174,7 +204,8 @@ impl<'a> Track<'a> {
 
     /// The segment test of [`Gate::crossing`] against gate `index` with this track's opening.
     pub fn crossing(&self, index: usize, from_m: Vec3, to_m: Vec3) -> GateCrossing {
-        self.gate(index).crossing(from_m, to_m, self.opening_half_size_m)
+        self.gate(index)
+            .crossing(from_m, to_m, self.opening_half_size_m)
     }
 }
 
@@ -205,12 +236,16 @@ impl Centerline {
         }
         // Periodic natural spline, uniform knots: M[i-1] + 4 M[i] + M[i+1] = 6 (P[i+1] - 2 P[i] + P[i-1]).
         // Strictly diagonally dominant, so Gauss-Seidel converges geometrically (ratio 1/2).
-        let at = |a: &[Vec3; MAX_CENTERLINE_GATES], i: usize| a.get(i % n.max(1)).copied().unwrap_or(Vec3::ZERO);
+        let at = |a: &[Vec3; MAX_CENTERLINE_GATES], i: usize| {
+            a.get(i % n.max(1)).copied().unwrap_or(Vec3::ZERO)
+        };
         let mut second = [Vec3::ZERO; MAX_CENTERLINE_GATES];
         if n >= 3 {
             for _ in 0..60 {
                 for i in 0..n {
-                    let rhs = (at(&points, i + 1) - at(&points, i).scale(2.0) + at(&points, i + n - 1)).scale(6.0);
+                    let rhs = (at(&points, i + 1) - at(&points, i).scale(2.0)
+                        + at(&points, i + n - 1))
+                    .scale(6.0);
                     let v = (rhs - at(&second, i + n - 1) - at(&second, i + 1)).scale(0.25);
                     if let Some(m) = second.get_mut(i) {
                         *m = v;
@@ -246,7 +281,10 @@ impl Centerline {
         let (k, t) = self.split(s);
         let ((p0, m0), (p1, m1)) = (self.knot(k), self.knot(k + 1));
         let u = 1.0 - t;
-        p0.scale(u) + p1.scale(t) + m0.scale((u * u * u - u) / 6.0) + m1.scale((t * t * t - t) / 6.0)
+        p0.scale(u)
+            + p1.scale(t)
+            + m0.scale((u * u * u - u) / 6.0)
+            + m1.scale((t * t * t - t) / 6.0)
     }
 
     /// The derivative dP/ds at parameter `s` (m per parameter unit).
@@ -270,10 +308,17 @@ impl Centerline {
                 best = (t, d);
             }
         }
-        let (mut lo, mut hi) = ((best.0 - 1.0 / 32.0).max(0.0), (best.0 + 1.0 / 32.0).min(1.0));
+        let (mut lo, mut hi) = (
+            (best.0 - 1.0 / 32.0).max(0.0),
+            (best.0 + 1.0 / 32.0).min(1.0),
+        );
         for _ in 0..12 {
             let (a, b) = (lo + (hi - lo) / 3.0, hi - (hi - lo) / 3.0);
-            if dist(base + a) < dist(base + b) { hi = b } else { lo = a }
+            if dist(base + a) < dist(base + b) {
+                hi = b
+            } else {
+                lo = a
+            }
         }
         base + 0.5 * (lo + hi)
     }
@@ -331,7 +376,10 @@ pub enum GateEvent {
 impl GateProgress {
     /// Targeting gate `target`, nothing passed yet.
     pub const fn targeting(target: usize) -> Self {
-        Self { target, gates_passed: 0 }
+        Self {
+            target,
+            gates_passed: 0,
+        }
     }
 
     /// Tests the step `from_m → to_m` against the target gate and advances the target on a
@@ -364,9 +412,17 @@ pub struct CrashRules {
 
 impl CrashRules {
     /// Stage 1 (time trial): ground 0.1 m, out of bounds 25 m.
-    pub const STAGE1: Self = Self { ground_z_m: 0.1, max_gate_offset_m: 25.0, min_separation_m: 0.2 };
+    pub const STAGE1: Self = Self {
+        ground_z_m: 0.1,
+        max_gate_offset_m: 25.0,
+        min_separation_m: 0.2,
+    };
     /// Stage 2 (race): ground 0.1 m, out of bounds 15 m, separation 0.2 m.
-    pub const STAGE2: Self = Self { ground_z_m: 0.1, max_gate_offset_m: 15.0, min_separation_m: 0.2 };
+    pub const STAGE2: Self = Self {
+        ground_z_m: 0.1,
+        max_gate_offset_m: 15.0,
+        min_separation_m: 0.2,
+    };
 
     /// True when a drone at `p_m` has hit the ground.
     pub fn below_ground(&self, p_m: Vec3) -> bool {
@@ -410,7 +466,10 @@ mod tests {
         }
         // g1 and g2 are upside down: their z axis points down.
         for i in [1, 2] {
-            assert!(t.gate(i).frame.rotate(Vec3::Z).z < -0.999, "g{i} upside down");
+            assert!(
+                t.gate(i).frame.rotate(Vec3::Z).z < -0.999,
+                "g{i} upside down"
+            );
         }
         for i in [0, 3, 4, 5] {
             assert!(t.gate(i).frame.rotate(Vec3::Z).z > 0.999, "g{i} upright");
@@ -421,7 +480,12 @@ mod tests {
     fn straight_through_the_centre_passes() {
         let g = Track::figure_eight().gate(0);
         let c = g.crossing(Vec3::new(-0.5, 0.0, 1.0), Vec3::new(0.5, 0.0, 1.0), 0.8);
-        assert_eq!(c, GateCrossing::Passed { crossing_m: Vec3::new(0.0, 0.0, 0.0) });
+        assert_eq!(
+            c,
+            GateCrossing::Passed {
+                crossing_m: Vec3::new(0.0, 0.0, 0.0)
+            }
+        );
     }
 
     #[test]
@@ -429,16 +493,28 @@ mod tests {
         let g = Track::figure_eight().gate(0);
         for (y, z) in [(0.9, 1.0), (0.0, 1.85), (-3.0, 1.0), (0.0, 0.15)] {
             let c = g.crossing(Vec3::new(-0.5, y, z), Vec3::new(0.5, y, z), 0.8);
-            assert!(matches!(c, GateCrossing::Collided { .. }), "({y}, {z}): {c:?}");
+            assert!(
+                matches!(c, GateCrossing::Collided { .. }),
+                "({y}, {z}): {c:?}"
+            );
         }
     }
 
     #[test]
     fn back_to_front_and_parallel_moves_are_not_events() {
         let g = Track::figure_eight().gate(0);
-        assert_eq!(g.crossing(Vec3::new(0.5, 0.0, 1.0), Vec3::new(-0.5, 0.0, 1.0), 0.8), GateCrossing::None);
-        assert_eq!(g.crossing(Vec3::new(-0.5, 0.0, 1.0), Vec3::new(-0.5, 3.0, 1.0), 0.8), GateCrossing::None);
-        assert_eq!(g.crossing(Vec3::new(-2.0, 0.0, 1.0), Vec3::new(-0.1, 0.0, 1.0), 0.8), GateCrossing::None);
+        assert_eq!(
+            g.crossing(Vec3::new(0.5, 0.0, 1.0), Vec3::new(-0.5, 0.0, 1.0), 0.8),
+            GateCrossing::None
+        );
+        assert_eq!(
+            g.crossing(Vec3::new(-0.5, 0.0, 1.0), Vec3::new(-0.5, 3.0, 1.0), 0.8),
+            GateCrossing::None
+        );
+        assert_eq!(
+            g.crossing(Vec3::new(-2.0, 0.0, 1.0), Vec3::new(-0.1, 0.0, 1.0), 0.8),
+            GateCrossing::None
+        );
     }
 
     /// Regression for the paper's end-point test: a fast drone whose position after the step
@@ -448,7 +524,9 @@ mod tests {
         let g = Track::figure_eight().gate(0);
         // 20 m/s for 20 ms: 0.4 m per step, crossing at y = 0.625, ending at y = 1.0.
         let c = g.crossing(Vec3::new(-0.1, 0.5, 1.0), Vec3::new(0.3, 1.0, 1.0), 0.8);
-        assert!(matches!(c, GateCrossing::Passed { crossing_m } if (crossing_m.y - 0.625).abs() < 1e-5));
+        assert!(
+            matches!(c, GateCrossing::Passed { crossing_m } if (crossing_m.y - 0.625).abs() < 1e-5)
+        );
         // ... and the converse: ending inside the square after crossing outside it.
         let c = g.crossing(Vec3::new(-0.1, 1.2, 1.0), Vec3::new(0.3, 0.0, 1.0), 0.8);
         assert!(matches!(c, GateCrossing::Collided { .. }), "{c:?}");
@@ -460,7 +538,10 @@ mod tests {
         let g = t.gate(1);
         let before = g.to_world_frame(Vec3::new(-0.3, 0.2, -0.3));
         let after = g.to_world_frame(Vec3::new(0.3, 0.2, -0.3));
-        assert!(matches!(g.crossing(before, after, 0.8), GateCrossing::Passed { .. }));
+        assert!(matches!(
+            g.crossing(before, after, 0.8),
+            GateCrossing::Passed { .. }
+        ));
         assert_eq!(g.crossing(after, before, 0.8), GateCrossing::None);
     }
 
@@ -471,11 +552,24 @@ mod tests {
         for lap in 0..2 {
             for i in 0..t.len() {
                 let g = t.gate(i);
-                let e = p.advance(&t, g.to_world_frame(Vec3::new(-0.2, 0.1, 0.1)), g.to_world_frame(Vec3::new(0.2, 0.1, 0.1)));
-                assert!(matches!(e, GateEvent::Passed { gate, .. } if gate == i), "lap {lap} gate {i}: {e:?}");
+                let e = p.advance(
+                    &t,
+                    g.to_world_frame(Vec3::new(-0.2, 0.1, 0.1)),
+                    g.to_world_frame(Vec3::new(0.2, 0.1, 0.1)),
+                );
+                assert!(
+                    matches!(e, GateEvent::Passed { gate, .. } if gate == i),
+                    "lap {lap} gate {i}: {e:?}"
+                );
             }
         }
-        assert_eq!(p, GateProgress { target: 0, gates_passed: 12 });
+        assert_eq!(
+            p,
+            GateProgress {
+                target: 0,
+                gates_passed: 12
+            }
+        );
     }
 
     #[test]
@@ -509,14 +603,22 @@ mod tests {
         // SPEC: "The centreline is about 68.7 m long" (scipy's periodic CubicSpline: 68.656).
         assert!((c.length_m() - 68.656).abs() < 0.02, "{}", c.length_m());
         for (k, g) in t.gates().iter().enumerate() {
-            assert!((c.point(k as f32) - g.center_m).norm() < 1e-4, "passes g{k}");
+            assert!(
+                (c.point(k as f32) - g.center_m).norm() < 1e-4,
+                "passes g{k}"
+            );
         }
         // The spline's headings at g1, g2, g4, g5 are the gate headings (g0 and g3 overridden).
         for k in [1, 2, 4, 5] {
             let d = c.tangent(k as f32);
             let spline = libm::atan2f(d.y, d.x);
             let gate = t.gate(k).frame.heading_rad();
-            assert!((spline - gate).abs() < 2e-3, "g{k}: {} vs {}", deg(spline), deg(gate));
+            assert!(
+                (spline - gate).abs() < 2e-3,
+                "g{k}: {} vs {}",
+                deg(spline),
+                deg(gate)
+            );
         }
         // C1 continuity at the knots.
         for k in 0..6 {

@@ -21,7 +21,12 @@ pub struct VehicleState {
 impl VehicleState {
     /// At rest at `position_m` with attitude `attitude`.
     pub fn at_rest(position_m: Vec3, attitude: Quat) -> Self {
-        Self { position_m, attitude, velocity_mps: Vec3::ZERO, body_rates_radps: Vec3::ZERO }
+        Self {
+            position_m,
+            attitude,
+            velocity_mps: Vec3::ZERO,
+            body_rates_radps: Vec3::ZERO,
+        }
     }
 
     /// True when every field is finite (a NaN or infinity anywhere makes it false).
@@ -66,8 +71,12 @@ impl Cf2x {
     pub const KM_NM_PER_RPM2: f32 = 7.94e-12;
     /// Propeller positions (x, y) in the body frame (m): front-right, back-right, back-left,
     /// front-left.
-    pub const PROPELLER_POSITIONS_M: [[f32; 2]; 4] =
-        [[0.028, -0.028], [-0.028, -0.028], [-0.028, 0.028], [0.028, 0.028]];
+    pub const PROPELLER_POSITIONS_M: [[f32; 2]; 4] = [
+        [0.028, -0.028],
+        [-0.028, -0.028],
+        [-0.028, 0.028],
+        [0.028, 0.028],
+    ];
     /// Spin sign sᵢ of each propeller in the yaw torque.
     pub const SPIN_SIGNS: [f32; 4] = [-1.0, 1.0, -1.0, 1.0];
     /// Gravity (m/s²).
@@ -93,18 +102,27 @@ impl Default for ActionMap {
 
 impl ActionMap {
     /// Paper eq. 3.
-    pub const PAPER: Self = Self { hover_rpm: 14468.429, gain: 0.8 };
+    pub const PAPER: Self = Self {
+        hover_rpm: 14468.429,
+        gain: 0.8,
+    };
 
     /// Propeller speed (rpm) for one action component, clipped to [-1, 1] first. A NaN
     /// action maps to `hover_rpm` (a = 0), never to NaN.
     pub fn rpm(&self, action: f32) -> f32 {
-        let a = if action.is_nan() { 0.0 } else { action.clamp(-1.0, 1.0) };
+        let a = if action.is_nan() {
+            0.0
+        } else {
+            action.clamp(-1.0, 1.0)
+        };
         self.hover_rpm * (1.0 + self.gain * a)
     }
 
     /// Maps four actions to a motor command.
     pub fn command(&self, action: &[f32; 4]) -> MotorCommand {
-        MotorCommand { rpm: action.map(|a| self.rpm(a)) }
+        MotorCommand {
+            rpm: action.map(|a| self.rpm(a)),
+        }
     }
 
     /// The action (unclipped) that gives `rpm`.
@@ -114,6 +132,9 @@ impl ActionMap {
 
     /// True when both numbers are finite and positive.
     pub fn is_valid(&self) -> bool {
-        self.hover_rpm.is_finite() && self.hover_rpm > 0.0 && self.gain.is_finite() && self.gain > 0.0
+        self.hover_rpm.is_finite()
+            && self.hover_rpm > 0.0
+            && self.gain.is_finite()
+            && self.gain > 0.0
     }
 }

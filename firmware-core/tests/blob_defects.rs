@@ -1,7 +1,9 @@
 //! Every defect of a blob is a typed error and nothing panics: truncation at every length,
 //! bit flips anywhere, and each semantic defect on its own.
 
-use firmware_core::blob::{AlignedBytes, Blob, BlobError, BlobHeader, FORMAT_VERSION, MAGIC, PREFIX_LEN, encode};
+use firmware_core::blob::{
+    AlignedBytes, Blob, BlobError, BlobHeader, FORMAT_VERSION, MAGIC, PREFIX_LEN, encode,
+};
 use firmware_core::crc32::crc32;
 use firmware_core::observation::OBSERVATION_PIPELINE_VERSION;
 use firmware_core::policy::{Architecture, TableRow};
@@ -93,8 +95,14 @@ fn random_bit_flips_anywhere_are_errors() {
     let mut rng = SplitMix64::new(99);
     for _ in 0..3000 {
         let flips = 1 + (rng.next_u64() % 3) as usize;
-        let at: Vec<(usize, u8)> =
-            (0..flips).map(|_| ((rng.next_u64() % bytes.len() as u64) as usize, 1u8 << (rng.next_u64() % 8))).collect();
+        let at: Vec<(usize, u8)> = (0..flips)
+            .map(|_| {
+                (
+                    (rng.next_u64() % bytes.len() as u64) as usize,
+                    1u8 << (rng.next_u64() % 8),
+                )
+            })
+            .collect();
         for &(i, m) in &at {
             aligned.as_bytes_mut()[i] ^= m;
         }
@@ -122,8 +130,14 @@ fn bad_magic_and_version() {
     assert_eq!(parse(&bytes), Err(BlobError::BadMagic));
     let mut bytes = row_a();
     bytes[4..6].copy_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
-    assert_eq!(parse(&bytes), Err(BlobError::UnsupportedVersion(FORMAT_VERSION + 1)));
-    assert_eq!(parse(b"PK\x03\x04 not a blob at all"), Err(BlobError::BadMagic));
+    assert_eq!(
+        parse(&bytes),
+        Err(BlobError::UnsupportedVersion(FORMAT_VERSION + 1))
+    );
+    assert_eq!(
+        parse(b"PK\x03\x04 not a blob at all"),
+        Err(BlobError::BadMagic)
+    );
     assert_eq!(&row_a()[..4], &MAGIC);
 }
 
@@ -133,7 +147,10 @@ fn misaligned_start_is_refused() {
     let mut shifted = vec![0u8; 1];
     shifted.extend_from_slice(&bytes);
     let aligned = AlignedBytes::new(&shifted);
-    assert_eq!(Blob::parse(&aligned.as_bytes()[1..]).err(), Some(BlobError::Misaligned { offset_mod_4: 1 }));
+    assert_eq!(
+        Blob::parse(&aligned.as_bytes()[1..]).err(),
+        Some(BlobError::Misaligned { offset_mod_4: 1 })
+    );
 }
 
 #[test]
@@ -143,7 +160,10 @@ fn non_finite_weight_is_refused() {
     // The last weight sits just before the CRC.
     bytes[n - 8..n - 4].copy_from_slice(&f32::NAN.to_le_bytes());
     let expected = Architecture::table1(TableRow::A).param_count() - 1;
-    assert_eq!(parse(&reseal(bytes)), Err(BlobError::NonFiniteWeight { index: expected }));
+    assert_eq!(
+        parse(&reseal(bytes)),
+        Err(BlobError::NonFiniteWeight { index: expected })
+    );
     // The encoder refuses them too.
     let h = synthetic::header(TableRow::A, 1);
     let mut w = synthetic::weights(&h.architecture, 1);
@@ -158,7 +178,8 @@ fn observation_spec_of_another_pipeline_is_refused() {
     let bytes = encode_with(|h| h.observation.velocity_scale_mps = 0.0);
     assert_eq!(parse(&bytes), Err(BlobError::ObservationSpecMismatch));
     // A 30-value spec on a 17-input network.
-    let bytes = encode_with(|h| h.observation.layout = firmware_core::ObservationLayout::FullOpponent30);
+    let bytes =
+        encode_with(|h| h.observation.layout = firmware_core::ObservationLayout::FullOpponent30);
     assert_eq!(parse(&bytes), Err(BlobError::UnsupportedArchitecture));
 }
 
@@ -174,9 +195,18 @@ fn unknown_architecture_is_refused() {
 
 #[test]
 fn action_map_and_control_period_are_checked() {
-    assert_eq!(parse(&encode_with(|h| h.action_map.gain = f32::NAN)), Err(BlobError::InvalidActionMap));
-    assert_eq!(parse(&encode_with(|h| h.action_map.hover_rpm = -1.0)), Err(BlobError::InvalidActionMap));
-    assert_eq!(parse(&encode_with(|h| h.control_period_ns = 0)), Err(BlobError::InvalidControlPeriod));
+    assert_eq!(
+        parse(&encode_with(|h| h.action_map.gain = f32::NAN)),
+        Err(BlobError::InvalidActionMap)
+    );
+    assert_eq!(
+        parse(&encode_with(|h| h.action_map.hover_rpm = -1.0)),
+        Err(BlobError::InvalidActionMap)
+    );
+    assert_eq!(
+        parse(&encode_with(|h| h.control_period_ns = 0)),
+        Err(BlobError::InvalidControlPeriod)
+    );
 }
 
 #[test]
@@ -200,7 +230,10 @@ fn payload_length_must_match_the_architecture() {
     let expected = Architecture::table1(TableRow::A).param_count();
     assert_eq!(
         parse(&reseal(out)),
-        Err(BlobError::PayloadSizeMismatch { expected_floats: expected, actual_floats: expected - 1 })
+        Err(BlobError::PayloadSizeMismatch {
+            expected_floats: expected,
+            actual_floats: expected - 1
+        })
     );
 }
 
@@ -218,7 +251,11 @@ fn non_zero_padding_is_refused() {
 
 #[test]
 fn errors_say_what_is_wrong() {
-    let msg = BlobError::Truncated { needed: 100, available: 10 }.to_string();
+    let msg = BlobError::Truncated {
+        needed: 100,
+        available: 10,
+    }
+    .to_string();
     assert!(msg.contains("100") && msg.contains("10"), "{msg}");
     assert!(BlobError::BadMagic.to_string().contains("OVTK"));
 }

@@ -22,12 +22,17 @@ fn hovering(x: f32) -> VehicleState {
 fn a_normal_step_commands_rpm_within_the_action_map() {
     for row in [TableRow::A, TableRow::B, TableRow::G] {
         let bytes = blob(row);
-        let mut c = Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
+        let mut c =
+            Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
         let opp = hovering(-2.0);
         let out = c.step(&hovering(-1.0), Some(&opp));
         assert_eq!(out.fault, None);
         let (lo, hi) = (ActionMap::PAPER.rpm(-1.0), ActionMap::PAPER.rpm(1.0));
-        assert!(out.command.rpm.iter().all(|r| (lo..=hi).contains(r)), "{:?}", out.command);
+        assert!(
+            out.command.rpm.iter().all(|r| (lo..=hi).contains(r)),
+            "{:?}",
+            out.command
+        );
         assert!(out.action.iter().all(|a| (-1.0..=1.0).contains(a)));
         assert_eq!(out.command, ActionMap::PAPER.command(&out.action));
     }
@@ -36,7 +41,8 @@ fn a_normal_step_commands_rpm_within_the_action_map() {
 #[test]
 fn nan_or_infinite_inputs_give_the_fail_safe_and_keep_the_state() {
     let bytes = blob(TableRow::G);
-    let mut c = Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
+    let mut c =
+        Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
     let opp = hovering(-2.0);
     c.step(&hovering(-1.0), Some(&opp));
     let state_before = *c.policy_state();
@@ -44,16 +50,25 @@ fn nan_or_infinite_inputs_give_the_fail_safe_and_keep_the_state() {
     let mut bad = hovering(-1.0);
     bad.velocity_mps.y = f32::NAN;
     let out = c.step(&bad, Some(&opp));
-    assert_eq!((out.command, out.fault), (MotorCommand::STOP, Some(StepFault::NonFiniteState)));
+    assert_eq!(
+        (out.command, out.fault),
+        (MotorCommand::STOP, Some(StepFault::NonFiniteState))
+    );
     assert_eq!(*c.policy_state(), state_before);
 
     let mut bad_opp = opp;
     bad_opp.attitude.w = f32::INFINITY;
     let out = c.step(&hovering(-1.0), Some(&bad_opp));
-    assert_eq!((out.command, out.fault), (MotorCommand::STOP, Some(StepFault::NonFiniteOpponent)));
+    assert_eq!(
+        (out.command, out.fault),
+        (MotorCommand::STOP, Some(StepFault::NonFiniteOpponent))
+    );
 
     let out = c.step(&hovering(-1.0), None);
-    assert_eq!((out.command, out.fault), (MotorCommand::STOP, Some(StepFault::MissingOpponent)));
+    assert_eq!(
+        (out.command, out.fault),
+        (MotorCommand::STOP, Some(StepFault::MissingOpponent))
+    );
     assert_eq!(c.fault_count(), 3);
     assert_eq!(*c.policy_state(), state_before);
 
@@ -64,7 +79,8 @@ fn nan_or_infinite_inputs_give_the_fail_safe_and_keep_the_state() {
 #[test]
 fn a_time_trial_policy_ignores_the_opponent() {
     let bytes = blob(TableRow::A);
-    let mut c = Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
+    let mut c =
+        Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
     let a = c.step(&hovering(-1.0), None);
     c.reset(0);
     let b = c.step(&hovering(-1.0), Some(&hovering(3.0)));
@@ -77,7 +93,10 @@ fn a_recurrent_policy_refuses_another_rate_and_an_mlp_does_not() {
     let blob_g = Blob::parse(g.as_bytes()).expect("parse");
     assert_eq!(
         Controller::new(&blob_g, Track::figure_eight(), 10_000_000).err(),
-        Some(ControllerError::RateMismatch { trained_ns: PAPER_CONTROL_PERIOD_NS, requested_ns: 10_000_000 })
+        Some(ControllerError::RateMismatch {
+            trained_ns: PAPER_CONTROL_PERIOD_NS,
+            requested_ns: 10_000_000
+        })
     );
     let a = blob(TableRow::A);
     let blob_a = Blob::parse(a.as_bytes()).expect("parse");
@@ -87,11 +106,16 @@ fn a_recurrent_policy_refuses_another_rate_and_an_mlp_does_not() {
 #[test]
 fn the_target_gate_advances_on_a_pass_and_reset_restarts() {
     let bytes = blob(TableRow::G);
-    let mut c = Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
+    let mut c =
+        Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
     let opp = hovering(-3.0);
     c.step(&hovering(-0.2), Some(&opp));
     let out = c.step(&hovering(0.2), Some(&opp));
-    assert!(matches!(out.gate_event, GateEvent::Passed { gate: 0, .. }), "{:?}", out.gate_event);
+    assert!(
+        matches!(out.gate_event, GateEvent::Passed { gate: 0, .. }),
+        "{:?}",
+        out.gate_event
+    );
     assert_eq!(c.progress().target, 1);
     assert_ne!(*c.policy_state(), c.policy().initial_state());
 
@@ -108,8 +132,14 @@ fn the_target_gate_advances_on_a_pass_and_reset_restarts() {
 fn same_inputs_same_outputs() {
     let bytes = blob(TableRow::F);
     let run = || {
-        let mut c = Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
-        (0..20).map(|i| c.step(&hovering(-2.0 + 0.05 * i as f32), Some(&hovering(-3.0))).command).collect::<Vec<_>>()
+        let mut c =
+            Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
+        (0..20)
+            .map(|i| {
+                c.step(&hovering(-2.0 + 0.05 * i as f32), Some(&hovering(-3.0)))
+                    .command
+            })
+            .collect::<Vec<_>>()
     };
     assert_eq!(run(), run());
 }

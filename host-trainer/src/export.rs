@@ -1,10 +1,10 @@
 //! Export of trained weights as firmware-core blobs.
 
+use firmware_core::PAPER_CONTROL_PERIOD_NS;
 use firmware_core::blob::{BlobHeader, EncodeError, Provenance, WeightDtype, encode};
 use firmware_core::observation::{ObservationLayout, ObservationSpec};
 use firmware_core::policy::{Architecture, TableRow};
 use firmware_core::vehicle::ActionMap;
-use firmware_core::PAPER_CONTROL_PERIOD_NS;
 
 /// A blob header for a Table 1 row with the paper's observation scales, action map and 50 Hz
 /// control period.
@@ -26,6 +26,10 @@ pub fn paper_header(row: TableRow, provenance: Provenance) -> BlobHeader {
 }
 
 /// Encodes `weights` (payload order) as a blob of row `row`.
-pub fn export_blob(row: TableRow, provenance: Provenance, weights: &[f32]) -> Result<Vec<u8>, EncodeError> {
+pub fn export_blob(
+    row: TableRow,
+    provenance: Provenance,
+    weights: &[f32],
+) -> Result<Vec<u8>, EncodeError> {
     encode(&paper_header(row, provenance), weights)
 }

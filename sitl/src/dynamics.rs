@@ -48,7 +48,11 @@ impl Preset {
     /// The paper's effective dynamics: half of kf·rpm² (hover at a ≈ +0.52, thrust-to-weight
     /// ≈ 1.62 at a = 1), no drag, no motor lag.
     pub fn paper() -> Self {
-        Self { name: "paper", thrust_scale: 0.5, ..Self::nominal() }
+        Self {
+            name: "paper",
+            thrust_scale: 0.5,
+            ..Self::nominal()
+        }
     }
 
     /// The full kf·rpm² (thrust-to-weight 3.24 at a = 1), no drag, no motor lag.
@@ -92,7 +96,9 @@ impl Preset {
 
     /// Propeller speed that holds hover (rpm).
     pub fn hover_rpm(&self) -> f32 {
-        libm::sqrtf(self.mass_kg * self.gravity_mps2 / (4.0 * self.thrust_scale * self.kf_n_per_rpm2))
+        libm::sqrtf(
+            self.mass_kg * self.gravity_mps2 / (4.0 * self.thrust_scale * self.kf_n_per_rpm2),
+        )
     }
 }
 
@@ -116,12 +122,20 @@ struct Derivative {
 fn derivative(p: &Preset, s: &VehicleState, rpm: &[f32; 4]) -> Derivative {
     let mut force_z = 0.0;
     let mut torque = Vec3::ZERO;
-    for ((r, pos), spin) in rpm.iter().zip(Cf2x::PROPELLER_POSITIONS_M).zip(Cf2x::SPIN_SIGNS) {
+    for ((r, pos), spin) in rpm
+        .iter()
+        .zip(Cf2x::PROPELLER_POSITIONS_M)
+        .zip(Cf2x::SPIN_SIGNS)
+    {
         let r2 = r * r;
         let f = p.thrust_scale * p.kf_n_per_rpm2 * r2;
         force_z += f;
         // τ = p × (0, 0, f) = (y f, −x f, 0)
-        torque += Vec3::new(pos[1] * f, -pos[0] * f, spin * p.thrust_scale * p.km_nm_per_rpm2 * r2);
+        torque += Vec3::new(
+            pos[1] * f,
+            -pos[0] * f,
+            spin * p.thrust_scale * p.km_nm_per_rpm2 * r2,
+        );
     }
     let thrust_world = s.attitude.rotate(Vec3::new(0.0, 0.0, force_z));
     let accel = thrust_world.scale(1.0 / p.mass_kg) - s.velocity_mps.scale(p.linear_drag_per_s)
@@ -145,7 +159,12 @@ fn advance(s: &VehicleState, d: &Derivative, h: f32) -> VehicleState {
     let q = s.attitude;
     VehicleState {
         position_m: s.position_m + d.velocity.scale(h),
-        attitude: Quat::new(q.w + h * d.attitude.w, q.x + h * d.attitude.x, q.y + h * d.attitude.y, q.z + h * d.attitude.z),
+        attitude: Quat::new(
+            q.w + h * d.attitude.w,
+            q.x + h * d.attitude.x,
+            q.y + h * d.attitude.y,
+            q.z + h * d.attitude.z,
+        ),
         velocity_mps: s.velocity_mps + d.accel.scale(h),
         body_rates_radps: s.body_rates_radps + d.angular_accel.scale(h),
     }
@@ -154,14 +173,23 @@ fn advance(s: &VehicleState, d: &Derivative, h: f32) -> VehicleState {
 impl Body {
     /// A drone at rest in `state`, propellers stopped.
     pub fn new(state: VehicleState) -> Self {
-        Self { state, rpm: [0.0; 4] }
+        Self {
+            state,
+            rpm: [0.0; 4],
+        }
     }
 
     /// Advances by `dt_s` under `command` with `preset.substeps` RK4 substeps.
     pub fn step(&mut self, preset: &Preset, command: &MotorCommand, dt_s: f32) {
         let n = preset.substeps.max(1);
         let h = dt_s / n as f32;
-        let target = command.rpm.map(|r| if r.is_finite() { r.clamp(0.0, preset.max_rpm) } else { 0.0 });
+        let target = command.rpm.map(|r| {
+            if r.is_finite() {
+                r.clamp(0.0, preset.max_rpm)
+            } else {
+                0.0
+            }
+        });
         for _ in 0..n {
             if preset.motor_time_constant_s > 0.0 {
                 let alpha = 1.0 - libm::expf(-h / preset.motor_time_constant_s);

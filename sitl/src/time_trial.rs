@@ -60,12 +60,20 @@ pub struct TimeTrialSummary {
 impl TimeTrialSummary {
     /// Gates passed / gates encountered (1 when none was encountered).
     pub fn success_rate(&self) -> f32 {
-        if self.gates_encountered == 0 { 1.0 } else { self.gates_passed as f32 / self.gates_encountered as f32 }
+        if self.gates_encountered == 0 {
+            1.0
+        } else {
+            self.gates_passed as f32 / self.gates_encountered as f32
+        }
     }
 
     /// Crash resets per second.
     pub fn crash_rate_per_s(&self) -> f32 {
-        if self.sim_seconds > 0.0 { self.crashes as f32 / self.sim_seconds } else { 0.0 }
+        if self.sim_seconds > 0.0 {
+            self.crashes as f32 / self.sim_seconds
+        } else {
+            0.0
+        }
     }
 
     /// The fastest complete lap (s), `None` for a DNF.
@@ -75,13 +83,22 @@ impl TimeTrialSummary {
 }
 
 /// Flies `pilot` on `track` with `preset` dynamics for `seconds` at control period `dt_s`.
-pub fn fly(pilot: &mut dyn Pilot, track: &Track<'_>, preset: &Preset, seconds: f32, dt_s: f32) -> TimeTrialSummary {
+pub fn fly(
+    pilot: &mut dyn Pilot,
+    track: &Track<'_>,
+    preset: &Preset,
+    seconds: f32,
+    dt_s: f32,
+) -> TimeTrialSummary {
     let rules = CrashRules::STAGE1;
     let mut body = Body::new(stage1_spawn());
     let mut progress = GateProgress::targeting(0);
     pilot.reset(0);
     let steps = (seconds / dt_s).round() as u32;
-    let mut summary = TimeTrialSummary { sim_seconds: steps as f32 * dt_s, ..Default::default() };
+    let mut summary = TimeTrialSummary {
+        sim_seconds: steps as f32 * dt_s,
+        ..Default::default()
+    };
     let mut lap_start_s: Option<f32> = None;
     for k in 0..steps {
         let command = pilot.command(&body.state);

@@ -10,12 +10,27 @@ fn main() {
         eprintln!("unknown preset '{name}': paper, nominal or realistic");
         std::process::exit(2);
     };
-    let base = if preset.thrust_scale < 1.0 { BaselineConfig::paper() } else { BaselineConfig::nominal() };
+    let base = if preset.thrust_scale < 1.0 {
+        BaselineConfig::paper()
+    } else {
+        BaselineConfig::nominal()
+    };
     let track = Track::figure_eight();
     for speed in [4.0f32, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0] {
-        let mut pilot = BaselineController::new(BaselineConfig { cruise_speed_mps: speed, ..base }, track);
+        let mut pilot = BaselineController::new(
+            BaselineConfig {
+                cruise_speed_mps: speed,
+                ..base
+            },
+            track,
+        );
         let s = sitl::time_trial::fly(&mut pilot, &track, &preset, 45.0, 0.02);
-        let best = s.best_lap_s().map_or("DNF".to_string(), |t| format!("{t:.2} s"));
-        println!("{name} cruise {speed:4.1} m/s: {:3} gates, {} crashes, best lap {best}", s.gates_passed, s.crashes);
+        let best = s
+            .best_lap_s()
+            .map_or("DNF".to_string(), |t| format!("{t:.2} s"));
+        println!(
+            "{name} cruise {speed:4.1} m/s: {:3} gates, {} crashes, best lap {best}",
+            s.gates_passed, s.crashes
+        );
     }
 }

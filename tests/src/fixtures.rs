@@ -18,8 +18,14 @@ use crate::reference::{ReferencePolicy, Shape};
 pub const GOLDEN_STEPS: usize = 6;
 
 /// The rows with a distinct architecture (D is C's).
-pub const GOLDEN_ROWS: [TableRow; 6] =
-    [TableRow::A, TableRow::B, TableRow::C, TableRow::E, TableRow::F, TableRow::G];
+pub const GOLDEN_ROWS: [TableRow; 6] = [
+    TableRow::A,
+    TableRow::B,
+    TableRow::C,
+    TableRow::E,
+    TableRow::F,
+    TableRow::G,
+];
 
 /// The seed of row `row`'s synthetic weights.
 pub fn golden_seed(row: TableRow) -> u64 {
@@ -57,15 +63,38 @@ pub fn golden_text(row: TableRow) -> String {
     let arch = Architecture::table1(row);
     let (obs, means) = golden_sequence(row);
     let mut s = String::new();
-    let _ = writeln!(s, "# Overtake golden vectors: synthetic weights (firmware_core::synthetic),");
-    let _ = writeln!(s, "# expected Gaussian means from the float64 reference (tests/src/reference.rs).");
-    let _ = writeln!(s, "# Regenerate with OVERTAKE_BLESS=1 cargo test -p overtake-tests --test golden_vectors");
+    let _ = writeln!(
+        s,
+        "# Overtake golden vectors: synthetic weights (firmware_core::synthetic),"
+    );
+    let _ = writeln!(
+        s,
+        "# expected Gaussian means from the float64 reference (tests/src/reference.rs)."
+    );
+    let _ = writeln!(
+        s,
+        "# Regenerate with OVERTAKE_BLESS=1 cargo test -p overtake-tests --test golden_vectors"
+    );
     let _ = writeln!(s, "row {}", row.letter());
     let _ = writeln!(s, "seed {}", golden_seed(row));
     let _ = writeln!(s, "dim {}", arch.obs_dim);
     for (o, m) in obs.iter().zip(&means) {
-        let _ = writeln!(s, "obs {}", o.iter().map(|v| format!("{v:?}")).collect::<Vec<_>>().join(" "));
-        let _ = writeln!(s, "mean {}", m.iter().map(|v| format!("{v:.17e}")).collect::<Vec<_>>().join(" "));
+        let _ = writeln!(
+            s,
+            "obs {}",
+            o.iter()
+                .map(|v| format!("{v:?}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        );
+        let _ = writeln!(
+            s,
+            "mean {}",
+            m.iter()
+                .map(|v| format!("{v:.17e}"))
+                .collect::<Vec<_>>()
+                .join(" ")
+        );
     }
     s
 }

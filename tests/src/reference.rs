@@ -37,7 +37,9 @@ fn affine(w: &[f64], at: &mut usize, x: &[f64], out: usize) -> Vec<f64> {
     let weight = &w[*at..*at + out * n];
     let bias = &w[*at + out * n..*at + out * n + out];
     *at += out * n + out;
-    (0..out).map(|r| bias[r] + (0..n).map(|k| weight[r * n + k] * x[k]).sum::<f64>()).collect()
+    (0..out)
+        .map(|r| bias[r] + (0..n).map(|k| weight[r * n + k] * x[k]).sum::<f64>())
+        .collect()
 }
 
 impl ReferencePolicy {
@@ -77,17 +79,30 @@ impl ReferencePolicy {
                 })
                 .collect();
             for j in 0..hs {
-                let (i, f, g, o) = (sigmoid(z[j]), sigmoid(z[hs + j]), z[2 * hs + j].tanh(), sigmoid(z[3 * hs + j]));
+                let (i, f, g, o) = (
+                    sigmoid(z[j]),
+                    sigmoid(z[hs + j]),
+                    z[2 * hs + j].tanh(),
+                    sigmoid(z[3 * hs + j]),
+                );
                 self.c[l][j] = f * self.c[l][j] + i * g;
                 self.h[l][j] = o * self.c[l][j].tanh();
             }
             x = self.h[l].clone();
         }
         for &width in &self.shape.mlp {
-            x = affine(w, &mut at, &x, width).into_iter().map(f64::tanh).collect();
+            x = affine(w, &mut at, &x, width)
+                .into_iter()
+                .map(f64::tanh)
+                .collect();
         }
         let y = affine(w, &mut at, &x, 4);
-        assert_eq!(at, w.len(), "reference consumed {at} of {} weights", w.len());
+        assert_eq!(
+            at,
+            w.len(),
+            "reference consumed {at} of {} weights",
+            w.len()
+        );
         y
     }
 }
@@ -111,9 +126,21 @@ pub fn rotation(q: [f64; 4]) -> [[f64; 3]; 3] {
     let n = q.iter().map(|v| v * v).sum::<f64>().sqrt();
     let [w, x, y, z] = q.map(|v| v / n);
     [
-        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
-        [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
-        [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+        [
+            1.0 - 2.0 * (y * y + z * z),
+            2.0 * (x * y - w * z),
+            2.0 * (x * z + w * y),
+        ],
+        [
+            2.0 * (x * y + w * z),
+            1.0 - 2.0 * (x * x + z * z),
+            2.0 * (y * z - w * x),
+        ],
+        [
+            2.0 * (x * z - w * y),
+            2.0 * (y * z + w * x),
+            1.0 - 2.0 * (x * x + y * y),
+        ],
     ]
 }
 
@@ -148,7 +175,10 @@ pub fn observation(
     let r_gate = rotation(gate_q);
     let r_body = rotation(own.q);
     let mut o = Vec::with_capacity(dim);
-    o.extend(scaled_clip(mat_t_vec(&r_gate, sub(gate_center, own.p)), 12.0));
+    o.extend(scaled_clip(
+        mat_t_vec(&r_gate, sub(gate_center, own.p)),
+        12.0,
+    ));
     o.extend(own.q);
     o.extend(scaled_clip(mat_t_vec(&r_body, own.v), 3.0));
     o.extend(scaled_clip(own.w, pi));

@@ -22,13 +22,21 @@ fn baseline_holds_altitude_from_the_spawn() {
 
 #[test]
 fn baseline_flies_laps_of_the_figure_eight() {
-    for (preset, config) in [(Preset::paper(), BaselineConfig::paper()), (Preset::nominal(), BaselineConfig::nominal())] {
+    for (preset, config) in [
+        (Preset::paper(), BaselineConfig::paper()),
+        (Preset::nominal(), BaselineConfig::nominal()),
+    ] {
         let track = Track::figure_eight();
         let mut pilot = BaselineController::new(config, track);
         let s = fly(&mut pilot, &track, &preset, 45.0, 0.02);
         println!("{}: {s:?}", preset.name);
         assert_eq!(s.crashes, 0, "{}", preset.name);
-        assert!(s.gates_passed >= 18, "{}: only {} gates in 45 s", preset.name, s.gates_passed);
+        assert!(
+            s.gates_passed >= 18,
+            "{}: only {} gates in 45 s",
+            preset.name,
+            s.gates_passed
+        );
         assert!(s.lap_times_s.len() >= 2, "{}", preset.name);
         assert!(s.best_lap_s().is_some_and(|t| t < 14.0), "{}", preset.name);
     }
@@ -45,7 +53,13 @@ fn a_pilot_that_cuts_the_motors_crashes_and_is_respawned() {
     }
     // Free fall from 1 m to 0.1 m takes sqrt(2 * 0.9 / 9.81) = 0.43 s: 22 steps, so 10 s holds
     // 22 crashes of 22 steps and one partial fall.
-    let s = fly(&mut Off, &Track::figure_eight(), &Preset::paper(), 10.0, 0.02);
+    let s = fly(
+        &mut Off,
+        &Track::figure_eight(),
+        &Preset::paper(),
+        10.0,
+        0.02,
+    );
     assert_eq!(s.crashes, 500 / 22);
     assert_eq!(s.gates_passed, 0);
     assert_eq!(s.gates_encountered, s.crashes);

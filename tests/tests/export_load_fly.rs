@@ -13,10 +13,16 @@ use sitl::time_trial::fly;
 fn exported_weights_load_and_fly() {
     let arch = Architecture::table1(TableRow::A);
     let weights = synthetic::weights(&arch, 42);
-    let mut provenance = Provenance { seed: 42, iterations: 7, config_hash: 0xABCD, ..Default::default() };
+    let mut provenance = Provenance {
+        seed: 42,
+        iterations: 7,
+        config_hash: 0xABCD,
+        ..Default::default()
+    };
     provenance.name.push_str("export-test").expect("fits");
     provenance.preset.push_str("paper").expect("fits");
-    let bytes = AlignedBytes::new(&export_blob(TableRow::A, provenance.clone(), &weights).expect("export"));
+    let bytes =
+        AlignedBytes::new(&export_blob(TableRow::A, provenance.clone(), &weights).expect("export"));
 
     let blob = Blob::parse(bytes.as_bytes()).expect("parse");
     assert_eq!(blob.header().provenance, provenance);
@@ -29,7 +35,10 @@ fn exported_weights_load_and_fly() {
     // referee's books balance.
     assert_eq!(controller.fault_count(), 0);
     assert_eq!(summary.sim_seconds, 5.0);
-    assert_eq!(summary.gates_encountered, summary.gates_passed + summary.crashes);
+    assert_eq!(
+        summary.gates_encountered,
+        summary.gates_passed + summary.crashes
+    );
 }
 
 #[test]

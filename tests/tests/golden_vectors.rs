@@ -10,7 +10,9 @@ use firmware_core::crc32::crc32;
 use firmware_core::observation::Observation;
 use firmware_core::policy::{Architecture, Policy, TableRow};
 use firmware_core::synthetic;
-use overtake_tests::fixtures::{GOLDEN_ROWS, golden_dir, golden_seed, golden_sequence, golden_text};
+use overtake_tests::fixtures::{
+    GOLDEN_ROWS, golden_dir, golden_seed, golden_sequence, golden_text,
+};
 
 const TOLERANCE: f64 = 1e-5;
 
@@ -56,8 +58,16 @@ fn firmware_inference_matches_the_float64_reference_for_rows_a_to_g() {
             TableRow::F => matches!(policy, Policy::F(_)),
             TableRow::G => matches!(policy, Policy::G(_)),
         };
-        assert!(expected_variant, "row {} dispatched to {:?}", row.letter(), policy.obs_dim());
-        assert_eq!(blob.weights().len(), Architecture::table1(row).param_count());
+        assert!(
+            expected_variant,
+            "row {} dispatched to {:?}",
+            row.letter(),
+            policy.obs_dim()
+        );
+        assert_eq!(
+            blob.weights().len(),
+            Architecture::table1(row).param_count()
+        );
 
         let (obs, means) = golden_sequence(row);
         let mut state = policy.initial_state();
@@ -68,8 +78,16 @@ fn firmware_inference_matches_the_float64_reference_for_rows_a_to_g() {
                 max_err = max_err.max((f64::from(*g) - e).abs());
             }
         }
-        println!("row {}: {} params, max |f32 - f64 reference| = {max_err:.3e}", row.letter(), blob.weights().len());
-        assert!(max_err <= TOLERANCE, "row {}: max abs error {max_err:e} > {TOLERANCE:e}", row.letter());
+        println!(
+            "row {}: {} params, max |f32 - f64 reference| = {max_err:.3e}",
+            row.letter(),
+            blob.weights().len()
+        );
+        assert!(
+            max_err <= TOLERANCE,
+            "row {}: max abs error {max_err:e} > {TOLERANCE:e}",
+            row.letter()
+        );
     }
 }
 

@@ -15,7 +15,9 @@ fn state() -> impl Strategy<Value = VehicleState> {
         (-12.0f32..12.0, -12.0f32..12.0, -5.0f32..5.0),
         (-8.0f32..8.0, -8.0f32..8.0, -8.0f32..8.0),
     )
-        .prop_filter("quaternion", |(_, q, _, _)| q.0 * q.0 + q.1 * q.1 + q.2 * q.2 + q.3 * q.3 > 0.05)
+        .prop_filter("quaternion", |(_, q, _, _)| {
+            q.0 * q.0 + q.1 * q.1 + q.2 * q.2 + q.3 * q.3 > 0.05
+        })
         .prop_map(|(p, q, v, w)| VehicleState {
             position_m: Vec3::new(p.0, p.1, p.2),
             attitude: Quat::new(q.0, q.1, q.2, q.3).normalized(),
@@ -70,13 +72,36 @@ fn hand_computed_stage1_observation() {
     let obs = ObservationSpec::paper(ObservationLayout::TimeTrial17)
         .observe(&own, &g0, &[0.1, 0.2, 0.3, 0.4], None)
         .expect("observe");
-    let want = [1.0 / 12.0, 1.0 / 12.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.3, 0.4];
+    let want = [
+        1.0 / 12.0,
+        1.0 / 12.0,
+        0.0,
+        1.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.1,
+        0.2,
+        0.3,
+        0.4,
+    ];
     for (a, b) in obs.as_slice().iter().zip(want) {
         assert!((a - b).abs() < 1e-7, "{:?}", obs.as_slice());
     }
     // Far away and fast: the position and velocity terms saturate at ±1 (the paper's 3 m/s).
-    let fast = VehicleState { velocity_mps: Vec3::new(10.0, 0.0, 0.0), ..VehicleState::at_rest(Vec3::new(-30.0, 0.0, 1.0), Quat::IDENTITY) };
-    let obs = ObservationSpec::paper(ObservationLayout::TimeTrial17).observe(&fast, &g0, &[0.0; 4], None).expect("observe");
+    let fast = VehicleState {
+        velocity_mps: Vec3::new(10.0, 0.0, 0.0),
+        ..VehicleState::at_rest(Vec3::new(-30.0, 0.0, 1.0), Quat::IDENTITY)
+    };
+    let obs = ObservationSpec::paper(ObservationLayout::TimeTrial17)
+        .observe(&fast, &g0, &[0.0; 4], None)
+        .expect("observe");
     assert_eq!(obs.as_slice()[0], 1.0);
     assert_eq!(obs.as_slice()[7], 1.0);
 }
