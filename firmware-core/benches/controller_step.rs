@@ -1,5 +1,5 @@
-//! One `Controller::step` on the host for Table 1 rows A (MLP 2 × 128) and G (2-layer LSTM
-//! + 4-layer MLP): gate bookkeeping, observation, inference, action map. Seeded synthetic
+//! One `Controller::step` on the host for Table 1 rows A (MLP 2 × 128) and G (a 2-layer LSTM
+//! and a 4-layer MLP): gate bookkeeping, observation, inference, action map. Seeded synthetic
 //! weights (the cost does not depend on their values).
 //!
 //! `cargo bench -p firmware-core --bench controller_step`
