@@ -239,14 +239,24 @@ fn payload_length_must_match_the_architecture() {
 
 #[test]
 fn non_zero_padding_is_refused() {
-    let bytes = row_a();
-    let header_end = PREFIX_LEN + usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
-    if header_end % 4 == 0 {
-        return; // no padding in this encoding
+    // Grow the provenance name until the header leaves padding before the payload.
+    let mut tested = 0;
+    for extra in 0..4 {
+        let bytes = encode_with(|h| {
+            for _ in 0..extra {
+                let _ = h.provenance.name.push('x');
+            }
+        });
+        let header_end = PREFIX_LEN + usize::from(u16::from_le_bytes([bytes[6], bytes[7]]));
+        for pad in header_end..header_end.next_multiple_of(4) {
+            let mut b = bytes.clone();
+            b[pad] = 1;
+            assert_eq!(parse(&reseal(b)), Err(BlobError::NonZeroPadding));
+            tested += 1;
+        }
     }
-    let mut b = bytes.clone();
-    b[header_end] = 1;
-    assert_eq!(parse(&reseal(b)), Err(BlobError::NonZeroPadding));
+    // Four consecutive header lengths leave 3 + 2 + 1 + 0 padding bytes.
+    assert_eq!(tested, 6);
 }
 
 #[test]
