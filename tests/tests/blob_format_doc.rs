@@ -30,7 +30,7 @@ fn the_python_reader_agrees_with_firmware_core() {
             format!("\"lstm_layers\": {}", h.architecture.lstm_layers),
             format!("\"mlp_hidden\": [{widths}]"),
             format!("\"control_period_ns\": {}", h.control_period_ns),
-            format!("\"seed\": 77"),
+            "\"seed\": 77".to_string(),
             format!("\"name\": \"{}\"", h.provenance.name),
             format!("\"payload_len\": {}", h.payload_len),
             format!("\"count\": {}", w.len()),
