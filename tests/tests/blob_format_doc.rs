@@ -16,15 +16,29 @@ fn the_python_reader_agrees_with_firmware_core() {
         let bytes = synthetic::blob(row, 77).expect("encode");
         let path = dir.join(format!("{}.blob", row.letter()));
         std::fs::write(&path, &bytes).expect("write blob");
-        let out = Command::new("python3").arg(script).arg(&path).output().expect("python3 must be installed");
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let out = Command::new("python3")
+            .arg(script)
+            .arg(&path)
+            .output()
+            .expect("python3 must be installed");
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         let json = String::from_utf8(out.stdout).expect("utf-8");
 
         let aligned = AlignedBytes::new(&bytes);
         let blob = Blob::parse(aligned.as_bytes()).expect("parse");
         let h = blob.header();
         let w = blob.weights();
-        let widths = h.architecture.mlp_hidden.iter().map(|v| v.to_string()).collect::<Vec<_>>().join(", ");
+        let widths = h
+            .architecture
+            .mlp_hidden
+            .iter()
+            .map(|v| v.to_string())
+            .collect::<Vec<_>>()
+            .join(", ");
         for needle in [
             format!("\"obs_dim\": {}", h.architecture.obs_dim),
             format!("\"lstm_layers\": {}", h.architecture.lstm_layers),
@@ -36,10 +50,18 @@ fn the_python_reader_agrees_with_firmware_core() {
             format!("\"count\": {}", w.len()),
             format!("\"layout\": \"{:?}\"", h.observation.layout),
         ] {
-            assert!(json.contains(&needle), "row {}: {needle} not in {json}", row.letter());
+            assert!(
+                json.contains(&needle),
+                "row {}: {needle} not in {json}",
+                row.letter()
+            );
         }
         // The first weight, printed by Python from the f32 it read, parses back to ours.
-        let first = json.split("\"first\": [").nth(1).and_then(|s| s.split(',').next()).expect("first weight");
+        let first = json
+            .split("\"first\": [")
+            .nth(1)
+            .and_then(|s| s.split(',').next())
+            .expect("first weight");
         assert_eq!(first.trim().parse::<f32>().expect("number"), w[0]);
     }
     std::fs::remove_dir_all(&dir).expect("clean up");
