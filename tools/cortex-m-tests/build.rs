@@ -1,0 +1,205 @@
+//! Build script of the Cortex-M4 images (runs on the host).
+//!
+//! * puts `memory.x` (QEMU mps2-an386) on the linker search path for cortex-m-rt's `link.x`;
+//! * for a bare-metal target, writes to `OUT_DIR`, for each golden row A, B, C, E, F, G:
+//!   - `blob_X.bin`: the synthetic blob exactly as the host tests build it
+//!     (`firmware_core::synthetic::blob(row, 0x0DD5_EED0 + letter)`);
+//!   - `golden_X.bin`: `tests/golden/row_X.golden` parsed to binary: `dim` u32, `steps` u32,
+//!     then per step `dim` f32 observations and 4 f64 expected means (all little-endian);
+//! * and `observation_expected.bin`: the 30 f32 of `fixtures::observation_case()` observed
+//!   with the host's firmware-core, for the M4 to reproduce.
+
+use std::env;
+use std::fs;
+use std::path::{Path, PathBuf};
+
+use firmware_core::observation::{ObservationLayout, ObservationSpec};
+use firmware_core::policy::{Architecture, TableRow};
+use firmware_core::synthetic;
+
+#[path = "src/fixtures.rs"]
+#[allow(dead_code)]
+mod fixtures;
+
+/// The rows with a distinct architecture (D is C's), as in `tests/src/fixtures.rs`.
+const ROWS: [TableRow; 6] = [
+    TableRow::A,
+    TableRow::B,
+    TableRow::C,
+    TableRow::E,
+    TableRow::F,
+    TableRow::G,
+];
+
+/// Bytes of the mps2-an386 code region (memory.x `FLASH`).
+const CODE_REGION_BYTES: usize = 4 * 1024 * 1024;
+/// Room left in the code region for the program itself.
+const CODE_RESERVE_BYTES: usize = 256 * 1024;
+
+/// `golden_seed` of `tests/src/fixtures.rs`.
+fn golden_seed(row: TableRow) -> u64 {
+    0x0DD5_EED0 + row.letter() as u64
+}
+
+fn main() {
+    let manifest = PathBuf::from(env::var_os("CARGO_MANIFEST_DIR").expect("CARGO_MANIFEST_DIR"));
+    let out = PathBuf::from(env::var_os("OUT_DIR").expect("OUT_DIR"));
+    let root = manifest.join("../..");
+    let golden_dir = root.join("tests/golden");
+
+    println!("cargo:rerun-if-changed=build.rs");
+    println!("cargo:rerun-if-changed=memory.x");
+    println!("cargo:rerun-if-changed=src/fixtures.rs");
+    println!("cargo:rerun-if-changed={}", golden_dir.display());
+    for row in ROWS {
+        println!(
+            "cargo:rerun-if-changed={}",
+            golden_path(&golden_dir, row).display()
+        );
+    }
+    println!(
+        "cargo:rerun-if-changed={}",
+        root.join("firmware-core/src").display()
+    );
+    println!(
+        "cargo:rerun-if-changed={}",
+        root.join("firmware-core/Cargo.toml").display()
+    );
+
+    fs::copy(manifest.join("memory.x"), out.join("memory.x")).expect("copy memory.x to OUT_DIR");
+    println!("cargo:rustc-link-search={}", out.display());
+
+    // The data is only embedded in the bare-metal images; a host check needs none of it.
+    if env::var("CARGO_CFG_TARGET_OS").as_deref() != Ok("none") {
+        return;
+    }
+
+    let mut total = 0;
+    for row in ROWS {
+        let blob = synthetic::blob(row, golden_seed(row)).unwrap_or_else(|e| {
+            panic!(
+                "row {}: encoding the synthetic blob failed: {e}",
+                row.letter()
+            )
+        });
+        total += blob.len();
+        write(&out.join(format!("blob_{}.bin", row.letter())), &blob);
+        let path = golden_path(&golden_dir, row);
+        let text = fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let golden = parse_golden(row, &text).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        write(&out.join(format!("golden_{}.bin", row.letter())), &golden);
+    }
+    assert!(
+        total + CODE_RESERVE_BYTES <= CODE_REGION_BYTES,
+        "the six golden blobs take {total} bytes: with {CODE_RESERVE_BYTES} bytes for the \
+         program they do not fit the {CODE_REGION_BYTES}-byte code region of mps2-an386"
+    );
+
+    let case = fixtures::observation_case();
+    let obs = ObservationSpec::paper(ObservationLayout::FullOpponent30)
+        .observe(
+            &case.own,
+            &case.gate,
+            &case.previous_action,
+            Some(&case.opponent),
+        )
+        .expect("the observation case is valid");
+    let bytes: Vec<u8> = obs
+        .as_slice()
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    write(&out.join("observation_expected.bin"), &bytes);
+}
+
+fn golden_path(dir: &Path, row: TableRow) -> PathBuf {
+    dir.join(format!("row_{}.golden", row.letter()))
+}
+
+fn write(path: &Path, bytes: &[u8]) {
+    // Leave the file (and its mtime) alone when nothing changed.
+    if fs::read(path).ok().as_deref() != Some(bytes) {
+        fs::write(path, bytes).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    }
+}
+
+/// Parses a golden file (format of `tests/src/fixtures.rs`) to the binary layout above.
+fn parse_golden(row: TableRow, text: &str) -> Result<Vec<u8>, String> {
+    let dim = usize::from(Architecture::table1(row).obs_dim);
+    let mut steps: Vec<(Vec<f32>, Vec<f64>)> = Vec::new();
+    let mut pending_obs: Option<Vec<f32>> = None;
+    let (mut seen_row, mut seen_seed, mut seen_dim) = (false, false, false);
+    for (n, line) in text.lines().enumerate() {
+        let n = n + 1;
+        let line = line.trim();
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let (key, rest) = line.split_once(' ').unwrap_or((line, ""));
+        match key {
+            "row" => {
+                if rest != row.letter().to_string() {
+                    return Err(format!("line {n}: row {rest:?}, expected {}", row.letter()));
+                }
+                seen_row = true;
+            }
+            "seed" => {
+                if rest.parse::<u64>().ok() != Some(golden_seed(row)) {
+                    return Err(format!(
+                        "line {n}: seed {rest:?}, expected {}",
+                        golden_seed(row)
+                    ));
+                }
+                seen_seed = true;
+            }
+            "dim" => {
+                if rest.parse::<usize>().ok() != Some(dim) {
+                    return Err(format!("line {n}: dim {rest:?}, expected {dim}"));
+                }
+                seen_dim = true;
+            }
+            "obs" => {
+                let values = parse_values::<f32>(rest).map_err(|e| format!("line {n}: {e}"))?;
+                if values.len() != dim || pending_obs.is_some() {
+                    return Err(format!(
+                        "line {n}: expected one obs line of {dim} values per mean line"
+                    ));
+                }
+                pending_obs = Some(values);
+            }
+            "mean" => {
+                let values = parse_values::<f64>(rest).map_err(|e| format!("line {n}: {e}"))?;
+                let obs = pending_obs
+                    .take()
+                    .ok_or(format!("line {n}: mean line without obs line"))?;
+                if values.len() != 4 {
+                    return Err(format!(
+                        "line {n}: expected 4 mean values, got {}",
+                        values.len()
+                    ));
+                }
+                steps.push((obs, values));
+            }
+            other => return Err(format!("line {n}: unknown key {other:?}")),
+        }
+    }
+    if !(seen_row && seen_seed && seen_dim) || pending_obs.is_some() || steps.is_empty() {
+        return Err("incomplete golden file (needs row, seed, dim and obs/mean pairs)".into());
+    }
+    let mut out = Vec::new();
+    out.extend_from_slice(&(dim as u32).to_le_bytes());
+    out.extend_from_slice(&(steps.len() as u32).to_le_bytes());
+    for (obs, mean) in &steps {
+        obs.iter()
+            .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+        mean.iter()
+            .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+    }
+    Ok(out)
+}
+
+fn parse_values<T: std::str::FromStr>(s: &str) -> Result<Vec<T>, String> {
+    s.split_whitespace()
+        .map(|v| v.parse::<T>().map_err(|_| format!("not a number: {v:?}")))
+        .collect()
+}

@@ -1,0 +1,125 @@
+//! Argument parsing and dispatch (plain `std`, no parser crate).
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use crate::{cortex_m, inspect, size};
+
+/// The help text.
+pub const USAGE: &str = "\
+usage: cargo run -p tools -- <subcommand>
+
+subcommands:
+  inspect <blob>            decode a weight blob and print its header (exit 1 on a defect)
+  size-report               build the Cortex-M4 size images (rows A and G, f32, profile
+                            `firmware`) and report flash and RAM against an STM32F405
+  cortex-m test             build and run the Cortex-M4 test image under QEMU
+  cortex-m icount           instructions per Controller::step on the emulated Cortex-M4
+                            (QEMU -icount shift=0); --breakdown: per layer and kernel
+  help                      print this text";
+
+/// A parsed command line.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Command {
+    /// Print the usage.
+    Help,
+    /// Inspect a blob file.
+    Inspect(PathBuf),
+    /// The size report.
+    SizeReport,
+    /// Run the QEMU test image.
+    CortexMTest,
+    /// Run the instruction-count bench (`breakdown`: the per-layer image).
+    CortexMIcount {
+        /// Run `icount-breakdown` instead of `icount`.
+        breakdown: bool,
+    },
+}
+
+/// Parses the arguments after the program name.
+pub fn parse(args: &[String]) -> Result<Command, String> {
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    match args.as_slice() {
+        [] => Err("no subcommand given".into()),
+        ["help" | "-h" | "--help"] => Ok(Command::Help),
+        ["inspect", path] if !path.starts_with('-') => Ok(Command::Inspect(PathBuf::from(path))),
+        ["inspect", ..] => Err("inspect takes exactly one blob file".into()),
+        ["size-report"] => Ok(Command::SizeReport),
+        ["size-report", ..] => Err("size-report takes no arguments".into()),
+        ["cortex-m", "test"] => Ok(Command::CortexMTest),
+        ["cortex-m", "icount"] => Ok(Command::CortexMIcount { breakdown: false }),
+        ["cortex-m", "icount", "--breakdown"] => Ok(Command::CortexMIcount { breakdown: true }),
+        ["cortex-m", ..] => Err("cortex-m takes `test`, `icount` or `icount --breakdown`".into()),
+        [other, ..] => Err(format!("unknown subcommand `{other}`")),
+    }
+}
+
+/// Runs the command line; the exit code is the command's (2 for a usage error).
+pub fn main(args: Vec<String>) -> ExitCode {
+    let command = match parse(&args) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("error: {e}\n\n{USAGE}");
+            return ExitCode::from(2);
+        }
+    };
+    let result = match command {
+        Command::Help => {
+            println!("{USAGE}");
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Inspect(path) => inspect::run(&path),
+        Command::SizeReport => size::run(),
+        Command::CortexMTest => cortex_m::run_tests(),
+        Command::CortexMIcount { breakdown } => cortex_m::run_icount(breakdown),
+    };
+    result.unwrap_or_else(|e| {
+        eprintln!("error: {e}");
+        ExitCode::FAILURE
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn args(s: &[&str]) -> Vec<String> {
+        s.iter().map(|a| a.to_string()).collect()
+    }
+
+    #[test]
+    fn parses_every_subcommand() {
+        assert_eq!(
+            parse(&args(&["inspect", "x.bin"])),
+            Ok(Command::Inspect("x.bin".into()))
+        );
+        assert_eq!(parse(&args(&["size-report"])), Ok(Command::SizeReport));
+        assert_eq!(
+            parse(&args(&["cortex-m", "test"])),
+            Ok(Command::CortexMTest)
+        );
+        assert_eq!(
+            parse(&args(&["cortex-m", "icount"])),
+            Ok(Command::CortexMIcount { breakdown: false })
+        );
+        assert_eq!(
+            parse(&args(&["cortex-m", "icount", "--breakdown"])),
+            Ok(Command::CortexMIcount { breakdown: true })
+        );
+        assert_eq!(parse(&args(&["--help"])), Ok(Command::Help));
+    }
+
+    #[test]
+    fn refuses_bad_input() {
+        for bad in [
+            &[][..],
+            &["inspect"],
+            &["inspect", "a", "b"],
+            &["cortex-m"],
+            &["cortex-m", "run"],
+            &["frob"],
+        ] {
+            assert!(parse(&args(bad)).is_err(), "{bad:?}");
+        }
+    }
+}
