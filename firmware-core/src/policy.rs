@@ -282,6 +282,25 @@ pub enum PolicyState {
 pub const POLICY_G_MEMORY_BYTES: usize =
     core::mem::size_of::<PolicyState>() + PolicyG::SCRATCH_BYTES;
 
+impl PolicyState {
+    /// Zeroes the recurrent state in place (no temporary copy on the stack).
+    pub fn clear(&mut self) {
+        let layers: &mut [crate::nn::LstmLayerState<128>] = match self {
+            Self::Stateless => &mut [],
+            Self::Lstm1(s) => core::slice::from_mut(&mut s.first),
+            Self::Lstm2(s) => {
+                s.first.h.fill(0.0);
+                s.first.c.fill(0.0);
+                &mut s.deep
+            }
+        };
+        for layer in layers {
+            layer.h.fill(0.0);
+            layer.c.fill(0.0);
+        }
+    }
+}
+
 impl<'w> Policy<'w> {
     /// Views `payload` as the weights of `arch`; the architecture must be one of Table 1's.
     pub fn from_payload(arch: &Architecture, payload: &'w [f32]) -> Result<Self, BlobError> {

@@ -40,8 +40,9 @@ mod image {
     use cortex_m_tests::data::{self, Aligned, BLOB_A, BLOB_A_LEN, BLOB_G};
     use cortex_m_tests::fixtures::{flight, observation_case};
     use cortex_m_tests::golden::Golden;
+    use cortex_m_tests::stack;
     use firmware_core::blob::{Blob, BlobError};
-    use firmware_core::controller::{Controller, StepFault};
+    use firmware_core::controller::{CONTROLLER_G_RAM_BYTES, Controller, StepFault};
     use firmware_core::observation::{Observation, ObservationLayout, ObservationSpec};
     use firmware_core::track::Track;
     use firmware_core::vehicle::MotorCommand;
@@ -255,6 +256,22 @@ mod image {
             out.fault.is_none()
                 && rpm.iter().all(|v| v.is_finite() && *v > 0.0)
                 && c.fault_count() == 1,
+        );
+        // The compile-time RAM budget must bound what a step really uses on the target.
+        let stack_bytes = stack::high_water(&mut || {
+            let _ = c.step(&own, Some(&opponent));
+        });
+        let ram = core::mem::size_of::<Controller<'static>>() + stack_bytes;
+        hprintln!(
+            "  G controller RAM: {} B struct + {} B step stack = {} B (model {} B, budget 8192 B)",
+            core::mem::size_of::<Controller<'static>>(),
+            stack_bytes,
+            ram,
+            CONTROLLER_G_RAM_BYTES
+        );
+        r.check(
+            "controller_g_ram_within_model_and_budget",
+            ram <= CONTROLLER_G_RAM_BYTES && CONTROLLER_G_RAM_BYTES <= 8 * 1024,
         );
     }
 }
