@@ -3,7 +3,56 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use firmware_core::policy::TableRow;
+
 use crate::{cortex_m, inspect, size};
+
+fn parse_synth(args: &[&str]) -> Result<Command, String> {
+    let (mut row, mut seed, mut out) = (None, 1u64, None);
+    let mut it = args.iter();
+    while let Some(flag) = it.next() {
+        let value = it.next().ok_or_else(|| format!("{flag} needs a value"))?;
+        match *flag {
+            "--row" => {
+                row = Some(
+                    TableRow::ALL
+                        .into_iter()
+                        .find(|r| value.eq_ignore_ascii_case(&r.letter().to_string()))
+                        .ok_or_else(|| format!("--row takes A to G, not `{value}`"))?,
+                )
+            }
+            "--seed" => {
+                seed = value
+                    .parse()
+                    .map_err(|_| format!("--seed takes an integer, not `{value}`"))?
+            }
+            "--out" => out = Some(PathBuf::from(value)),
+            other => return Err(format!("synth-blob: unknown flag `{other}`")),
+        }
+    }
+    Ok(Command::SynthBlob {
+        row: row.ok_or("synth-blob needs --row")?,
+        seed,
+        out: out.ok_or("synth-blob needs --out FILE")?,
+    })
+}
+
+fn synth_blob(row: TableRow, seed: u64, out: &std::path::Path) -> crate::error::Result<ExitCode> {
+    let bytes = firmware_core::synthetic::blob(row, seed)
+        .map_err(|e| crate::error::Error::new(format!("encoding the blob: {e}")))?;
+    // Write to a temporary file and rename, so a partial file never carries the name.
+    let tmp = out.with_extension("tmp");
+    std::fs::write(&tmp, &bytes)
+        .and_then(|()| std::fs::rename(&tmp, out))
+        .map_err(|e| crate::error::Error::new(format!("writing {}: {e}", out.display())))?;
+    println!(
+        "wrote {} ({} bytes): row {}, seed {seed}, synthetic random weights (never for flight)",
+        out.display(),
+        bytes.len(),
+        row.letter()
+    );
+    Ok(ExitCode::SUCCESS)
+}
 
 /// The help text.
 pub const USAGE: &str = "\
@@ -13,6 +62,9 @@ subcommands:
   inspect <blob>            decode a weight blob and print its header (exit 1 on a defect)
   size-report               build the Cortex-M4 size images (rows A and G, f32, profile
                             `firmware`) and report flash and RAM against an STM32F405
+  synth-blob --row X [--seed N] --out FILE
+                            write a blob of Table 1 row X (A-G) with seeded random
+                            weights: for trying the tools, never for flight
   cortex-m test             build and run the Cortex-M4 test image under QEMU
   cortex-m icount           instructions per Controller::step on the emulated Cortex-M4
                             (QEMU -icount shift=0); --breakdown: per layer and kernel
@@ -27,6 +79,15 @@ pub enum Command {
     Inspect(PathBuf),
     /// The size report.
     SizeReport,
+    /// Write a synthetic blob.
+    SynthBlob {
+        /// Table 1 row.
+        row: TableRow,
+        /// Weight seed.
+        seed: u64,
+        /// Output file.
+        out: PathBuf,
+    },
     /// Run the QEMU test image.
     CortexMTest,
     /// Run the instruction-count bench (`breakdown`: the per-layer image).
@@ -46,6 +107,7 @@ pub fn parse(args: &[String]) -> Result<Command, String> {
         ["inspect", ..] => Err("inspect takes exactly one blob file".into()),
         ["size-report"] => Ok(Command::SizeReport),
         ["size-report", ..] => Err("size-report takes no arguments".into()),
+        ["synth-blob", rest @ ..] => parse_synth(rest),
         ["cortex-m", "test"] => Ok(Command::CortexMTest),
         ["cortex-m", "icount"] => Ok(Command::CortexMIcount { breakdown: false }),
         ["cortex-m", "icount", "--breakdown"] => Ok(Command::CortexMIcount { breakdown: true }),
@@ -70,6 +132,7 @@ pub fn main(args: Vec<String>) -> ExitCode {
         }
         Command::Inspect(path) => inspect::run(&path),
         Command::SizeReport => size::run(),
+        Command::SynthBlob { row, seed, out } => synth_blob(row, seed, &out),
         Command::CortexMTest => cortex_m::run_tests(),
         Command::CortexMIcount { breakdown } => cortex_m::run_icount(breakdown),
     };
@@ -107,6 +170,14 @@ mod tests {
             Ok(Command::CortexMIcount { breakdown: true })
         );
         assert_eq!(parse(&args(&["--help"])), Ok(Command::Help));
+        assert_eq!(
+            parse(&args(&["synth-blob", "--row", "g", "--out", "g.blob"])),
+            Ok(Command::SynthBlob {
+                row: TableRow::G,
+                seed: 1,
+                out: "g.blob".into()
+            })
+        );
     }
 
     #[test]
@@ -118,6 +189,9 @@ mod tests {
             &["cortex-m"],
             &["cortex-m", "run"],
             &["frob"],
+            &["synth-blob", "--row", "H", "--out", "x"],
+            &["synth-blob", "--row", "A"],
+            &["synth-blob", "--out", "x", "--seed", "-1"],
         ] {
             assert!(parse(&args(bad)).is_err(), "{bad:?}");
         }

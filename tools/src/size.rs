@@ -175,7 +175,7 @@ pub fn report(rows: &[Row]) -> String {
     );
     let _ = writeln!(
         s,
-        "* computed, not measured: size_of::<Controller>() on the target + the step's activations (SCRATCH_BYTES)."
+        "* computed, not measured: size_of::<Controller>() on the target + the step's activations (SCRATCH_BYTES) + the frame allowance (STEP_FRAME_ALLOWANCE_BYTES)."
     );
     let _ = writeln!(
         s,

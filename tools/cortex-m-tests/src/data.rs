@@ -74,13 +74,17 @@ pub static OBSERVATION_EXPECTED: &[u8] =
 pub static OVERTAKE_CONTROLLER_BYTES: u32 =
     core::mem::size_of::<firmware_core::Controller<'static>>() as u32;
 
-/// Activations one row-A step keeps on the stack (`Head::SCRATCH_BYTES` of its MLP head) on
-/// this target (symbol `OVERTAKE_SCRATCH_A_BYTES`).
+/// Stack one row-A step uses, as modelled: `Head::SCRATCH_BYTES` of its MLP head plus
+/// `STEP_FRAME_ALLOWANCE_BYTES`, on this target (symbol `OVERTAKE_SCRATCH_A_BYTES`).
 #[unsafe(no_mangle)]
 pub static OVERTAKE_SCRATCH_A_BYTES: u32 =
-    <firmware_core::nn::Mlp2<'static, 17, 128, 128> as firmware_core::nn::Head<'static, 17>>::SCRATCH_BYTES as u32;
+    (<firmware_core::nn::Mlp2<'static, 17, 128, 128> as firmware_core::nn::Head<'static, 17>>::SCRATCH_BYTES
+        + firmware_core::controller::STEP_FRAME_ALLOWANCE_BYTES) as u32;
 
-/// Activations one row-G step keeps on the stack (`PolicyG::SCRATCH_BYTES`) on this target
+/// Stack one row-G step uses, as modelled: `PolicyG::SCRATCH_BYTES` plus
+/// `STEP_FRAME_ALLOWANCE_BYTES`, on this target
 /// (symbol `OVERTAKE_SCRATCH_G_BYTES`).
 #[unsafe(no_mangle)]
-pub static OVERTAKE_SCRATCH_G_BYTES: u32 = firmware_core::policy::PolicyG::SCRATCH_BYTES as u32;
+pub static OVERTAKE_SCRATCH_G_BYTES: u32 = (firmware_core::policy::PolicyG::SCRATCH_BYTES
+    + firmware_core::controller::STEP_FRAME_ALLOWANCE_BYTES)
+    as u32;
