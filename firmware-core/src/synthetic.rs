@@ -13,6 +13,22 @@ use crate::observation::{ObservationLayout, ObservationSpec};
 use crate::policy::{Architecture, TableRow, TensorKind};
 use crate::vehicle::ActionMap;
 
+/// The Table 1 rows with a distinct architecture (D is C's): the golden-vector rows.
+pub const GOLDEN_ROWS: [TableRow; 6] = [
+    TableRow::A,
+    TableRow::B,
+    TableRow::C,
+    TableRow::E,
+    TableRow::F,
+    TableRow::G,
+];
+
+/// The weight seed of row `row`'s golden vectors (`tests/golden/row_X.golden`), shared by the
+/// host golden tests and the Cortex-M test image.
+pub fn golden_seed(row: TableRow) -> u64 {
+    0x0DD5_EED0 + row.letter() as u64
+}
+
 /// SplitMix64: a tiny, well-mixed, seedable generator.
 #[derive(Clone, Debug)]
 pub struct SplitMix64(u64);

@@ -17,20 +17,7 @@ use crate::reference::{ReferencePolicy, Shape};
 /// Steps per golden sequence (the recurrent rows carry state across them).
 pub const GOLDEN_STEPS: usize = 6;
 
-/// The rows with a distinct architecture (D is C's).
-pub const GOLDEN_ROWS: [TableRow; 6] = [
-    TableRow::A,
-    TableRow::B,
-    TableRow::C,
-    TableRow::E,
-    TableRow::F,
-    TableRow::G,
-];
-
-/// The seed of row `row`'s synthetic weights.
-pub fn golden_seed(row: TableRow) -> u64 {
-    0x0DD5_EED0 + row.letter() as u64
-}
+pub use firmware_core::synthetic::{GOLDEN_ROWS, golden_seed};
 
 /// The folder of the committed golden files.
 pub fn golden_dir() -> PathBuf {

@@ -15,31 +15,16 @@ use std::path::{Path, PathBuf};
 
 use firmware_core::observation::{ObservationLayout, ObservationSpec};
 use firmware_core::policy::{Architecture, TableRow};
-use firmware_core::synthetic;
+use firmware_core::synthetic::{self, GOLDEN_ROWS, golden_seed};
 
 #[path = "src/fixtures.rs"]
 #[allow(dead_code)]
 mod fixtures;
 
-/// The rows with a distinct architecture (D is C's), as in `tests/src/fixtures.rs`.
-const ROWS: [TableRow; 6] = [
-    TableRow::A,
-    TableRow::B,
-    TableRow::C,
-    TableRow::E,
-    TableRow::F,
-    TableRow::G,
-];
-
 /// Bytes of the mps2-an386 code region (memory.x `FLASH`).
 const CODE_REGION_BYTES: usize = 4 * 1024 * 1024;
 /// Room left in the code region for the program itself.
 const CODE_RESERVE_BYTES: usize = 256 * 1024;
-
-/// `golden_seed` of `tests/src/fixtures.rs`.
-fn golden_seed(row: TableRow) -> u64 {
-    0x0DD5_EED0 + row.letter() as u64
-}
 
 fn main() {
     let manifest = PathBuf::from(env::var_os("CARGO_MANIFEST_DIR").expect("CARGO_MANIFEST_DIR"));
@@ -51,7 +36,7 @@ fn main() {
     println!("cargo:rerun-if-changed=memory.x");
     println!("cargo:rerun-if-changed=src/fixtures.rs");
     println!("cargo:rerun-if-changed={}", golden_dir.display());
-    for row in ROWS {
+    for row in GOLDEN_ROWS {
         println!(
             "cargo:rerun-if-changed={}",
             golden_path(&golden_dir, row).display()
@@ -75,7 +60,7 @@ fn main() {
     }
 
     let mut total = 0;
-    for row in ROWS {
+    for row in GOLDEN_ROWS {
         let blob = synthetic::blob(row, golden_seed(row)).unwrap_or_else(|e| {
             panic!(
                 "row {}: encoding the synthetic blob failed: {e}",
