@@ -138,3 +138,58 @@ impl ActionMap {
             && self.gain > 0.0
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn action_map_is_paper_eq_3_with_clipping() {
+        let m = ActionMap::PAPER;
+        assert_eq!(m.rpm(0.0), 14468.429);
+        assert!((m.rpm(1.0) - 14468.429 * 1.8).abs() < 1e-2);
+        assert!((m.rpm(-1.0) - 14468.429 * 0.2).abs() < 1e-2);
+        // Out-of-range actions are clipped, a NaN action is a = 0, never a NaN rpm.
+        assert_eq!(m.rpm(7.0), m.rpm(1.0));
+        assert_eq!(m.rpm(-7.0), m.rpm(-1.0));
+        assert_eq!(m.rpm(f32::NAN), m.hover_rpm);
+        assert!((m.action_for_rpm(m.rpm(0.37)) - 0.37).abs() < 1e-6);
+        assert_eq!(
+            m.command(&[2.0, -2.0, 0.0, f32::NAN]).rpm,
+            [m.rpm(1.0), m.rpm(-1.0), m.hover_rpm, m.hover_rpm]
+        );
+    }
+
+    #[test]
+    fn action_map_validity() {
+        assert!(ActionMap::PAPER.is_valid());
+        assert!(
+            !ActionMap {
+                hover_rpm: 0.0,
+                gain: 0.8
+            }
+            .is_valid()
+        );
+        assert!(
+            !ActionMap {
+                hover_rpm: 1.0,
+                gain: f32::INFINITY
+            }
+            .is_valid()
+        );
+    }
+
+    #[test]
+    fn state_finiteness_and_world_rates() {
+        let mut s = VehicleState::at_rest(
+            Vec3::new(1.0, 2.0, 3.0),
+            Quat::from_yaw(core::f32::consts::FRAC_PI_2),
+        );
+        assert!(s.is_finite());
+        s.body_rates_radps = Vec3::X;
+        // Yawed 90°: body x is world y.
+        assert!((s.world_rates_radps() - Vec3::Y).norm() < 1e-6);
+        s.attitude.z = f32::NAN;
+        assert!(!s.is_finite());
+    }
+}
