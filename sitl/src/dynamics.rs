@@ -4,6 +4,14 @@
 //! the yaw torque is thrust_scale · km · Σ sᵢ rpmᵢ², gravity pulls along world −z. The state
 //! is integrated with `substeps` classical RK4 steps per control period; the attitude
 //! quaternion is re-normalised after every substep.
+//!
+//! **Integrator error** (`cargo test --release -p sitl --test dynamics integrator -- --nocapture`):
+//! against a float64 RK4 of the same equations with 1,024 substeps per 20 ms, over a 2 s
+//! manoeuvre with ±1,500 rpm of changing differential thrust (11 m travelled, rates of
+//! 6 rad/s), this f32 integrator ends within 1.3e-5 m / 7.2e-6 rad with 1 substep,
+//! 6.9e-6 m / 2.3e-6 rad with 2, 1.6e-5 m / 2.2e-6 rad with 4 (the default) and
+//! 3.1e-5 m / 1.3e-5 rad with 8. RK4's truncation error is already below f32 rounding at
+//! one substep per control period; more substeps only add rounding.
 
 use firmware_core::math::{Quat, Vec3};
 use firmware_core::vehicle::{Cf2x, MotorCommand, VehicleState};
