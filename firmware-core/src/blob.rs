@@ -110,6 +110,29 @@ pub struct BlobHeader {
     pub payload_len: u32,
 }
 
+impl BlobHeader {
+    /// The header of a Table 1 row with the paper's observation scales (the layout its input
+    /// size implies), action map (eq. 3) and 50 Hz control period; `payload_len` is set by the
+    /// encoder.
+    pub fn paper(row: crate::policy::TableRow, provenance: Provenance) -> Self {
+        let architecture = Architecture::table1(row);
+        let layout = match architecture.obs_dim {
+            17 => crate::observation::ObservationLayout::TimeTrial17,
+            20 => crate::observation::ObservationLayout::OpponentPosition20,
+            _ => crate::observation::ObservationLayout::FullOpponent30,
+        };
+        Self {
+            architecture,
+            observation: ObservationSpec::paper(layout),
+            action_map: ActionMap::PAPER,
+            control_period_ns: crate::PAPER_CONTROL_PERIOD_NS,
+            dtype: WeightDtype::F32,
+            provenance,
+            payload_len: 0,
+        }
+    }
+}
+
 /// A defect in a blob.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[non_exhaustive]

@@ -8,10 +8,8 @@
 extern crate std;
 use std::vec::Vec;
 
-use crate::blob::{BlobHeader, EncodeError, Provenance, WeightDtype, encode};
-use crate::observation::{ObservationLayout, ObservationSpec};
+use crate::blob::{BlobHeader, EncodeError, Provenance, encode};
 use crate::policy::{Architecture, TableRow, TensorKind};
-use crate::vehicle::ActionMap;
 
 /// The Table 1 rows with a distinct architecture (D is C's): the golden-vector rows.
 pub const GOLDEN_ROWS: [TableRow; 6] = [
@@ -97,29 +95,21 @@ pub fn observations(dim: usize, steps: usize, seed: u64) -> Vec<Vec<f32>> {
 
 /// The header of a synthetic blob of row `row` (paper scales, 50 Hz).
 pub fn header(row: TableRow, seed: u64) -> BlobHeader {
-    let architecture = Architecture::table1(row);
-    let layout = ObservationLayout::from_dim(usize::from(architecture.obs_dim))
-        .unwrap_or(ObservationLayout::FullOpponent30);
     let mut name = heapless::String::new();
     let _ = name.push_str("synthetic-");
     let _ = name.push(row.letter());
     let mut preset = heapless::String::new();
     let _ = preset.push_str("none");
-    BlobHeader {
-        architecture,
-        observation: ObservationSpec::paper(layout),
-        action_map: ActionMap::PAPER,
-        control_period_ns: crate::PAPER_CONTROL_PERIOD_NS,
-        dtype: WeightDtype::F32,
-        provenance: Provenance {
+    BlobHeader::paper(
+        row,
+        Provenance {
             name,
             seed,
             iterations: 0,
             preset,
             config_hash: 0,
         },
-        payload_len: 0,
-    }
+    )
 }
 
 /// A synthetic blob of row `row` with weights from `seed`.
