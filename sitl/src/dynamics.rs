@@ -5,7 +5,7 @@
 //! is integrated with `substeps` classical RK4 steps per control period; the attitude
 //! quaternion is re-normalised after every substep.
 //!
-//! **Integrator error** (`cargo test --release -p sitl --test dynamics integrator -- --nocapture`):
+//! **Integrator error** (`cargo test --release -p overtake-tests --test integrator_error -- --nocapture`):
 //! against a float64 RK4 of the same equations with 1,024 substeps per 20 ms, over a 2 s
 //! manoeuvre with ±1,500 rpm of changing differential thrust (11 m travelled, rates of
 //! 6 rad/s), this f32 integrator ends within 1.3e-5 m / 7.2e-6 rad with 1 substep,
