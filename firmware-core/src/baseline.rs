@@ -54,6 +54,9 @@ pub struct BaselineConfig {
     pub rate_gain_per_s: f32,
     /// Heading held (rad, world yaw of body x). Default 0.
     pub yaw_setpoint_rad: f32,
+    /// Offset of the flown line to the left of the centreline (m, horizontal; negative is
+    /// right). Default 0. Two baselines on lines 0.5 m apart can overtake without touching.
+    pub lateral_offset_m: f32,
 }
 
 impl Default for BaselineConfig {
@@ -92,6 +95,7 @@ impl BaselineConfig {
             yaw_gain_per_s: 3.0,
             rate_gain_per_s: 25.0,
             yaw_setpoint_rad: 0.0,
+            lateral_offset_m: 0.0,
         }
     }
 
@@ -100,6 +104,10 @@ impl BaselineConfig {
         libm::sqrtf(self.mass_kg * Cf2x::GRAVITY_MPS2 / (4.0 * self.thrust_coeff_n_per_rpm2))
     }
 }
+
+/// Largest offset from a gate's centre the baseline aims its crossing at (m); the opening's
+/// half-size is 0.8 m.
+pub const GATE_AIM_MARGIN_M: f32 = 0.5;
 
 /// The classical gate-racing controller.
 #[derive(Clone, Debug)]
@@ -167,7 +175,33 @@ impl<'t> BaselineController<'t> {
         let s = self.centerline.nearest_on_segment(segment, own.position_m);
         let speed_along = self.centerline.tangent(s).norm().max(1e-3);
         let lookahead_m = c.lookahead_m + c.lookahead_time_s * c.cruise_speed_mps;
-        let carrot = self.centerline.point(s + lookahead_m / speed_along);
+        let carrot_s = s + lookahead_m / speed_along;
+        let mut carrot = self.centerline.point(carrot_s);
+        if c.lateral_offset_m != 0.0 {
+            let t = self.centerline.tangent(carrot_s);
+            let left = Vec3::new(-t.y, t.x, 0.0);
+            carrot += left.scale(c.lateral_offset_m / left.norm().max(1e-3));
+        }
+        // Aim through the opening: when the straight line to the carrot crosses the target
+        // gate's plane more than `GATE_AIM_MARGIN_M` off centre (the drone started off the
+        // line, e.g. at the stage-2 spawn before g0 or g3, whose headings differ from the
+        // spline's), the carrot is moved sideways until the crossing is at that margin.
+        let gate = self.track.gate(self.progress.target);
+        let (a, mut b) = (
+            gate.to_gate_frame(own.position_m),
+            gate.to_gate_frame(carrot),
+        );
+        if a.x < 0.0 && b.x > 0.0 {
+            let t = a.x / (a.x - b.x);
+            let aim = |from: f32, to: f32| {
+                let cross = from + t * (to - from);
+                let clamped = cross.clamp(-GATE_AIM_MARGIN_M, GATE_AIM_MARGIN_M);
+                from + (clamped - from) / t
+            };
+            b.y = aim(a.y, b.y);
+            b.z = aim(a.z, b.z);
+            carrot = gate.to_world_frame(b);
+        }
         let to_carrot = carrot - own.position_m;
         let distance = to_carrot.norm().max(1e-3);
         // Cruise speed toward the carrot, slowing only when the carrot is closer than the
