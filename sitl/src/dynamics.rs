@@ -6,12 +6,23 @@
 //! quaternion is re-normalised after every substep.
 //!
 //! **Integrator error** (`cargo test --release -p overtake-tests --test integrator_error -- --nocapture`):
-//! against a float64 RK4 of the same equations with 1,024 substeps per 20 ms, over a 2 s
-//! manoeuvre with ±1,500 rpm of changing differential thrust (11 m travelled, rates of
-//! 6 rad/s), this f32 integrator ends within 1.3e-5 m / 7.2e-6 rad with 1 substep,
-//! 6.9e-6 m / 2.3e-6 rad with 2, 1.6e-5 m / 2.2e-6 rad with 4 (the default) and
-//! 3.1e-5 m / 1.3e-5 rad with 8. RK4's truncation error is already below f32 rounding at
-//! one substep per control period; more substeps only add rounding.
+//! against a float64 RK4 of the same equations with 1,024 substeps per 20 ms, this f32
+//! integrator ends
+//!
+//! | manoeuvre | 1 substep | 2 (default) | 4 (`realistic`) | 8 |
+//! |---|---|---|---|---|
+//! | racing: 2 s, ±1,500 rpm differential, 9.9 rad/s peak, 11 m | 1.6e-5 m, 5.9e-6 rad | 6.4e-6 m, 2.0e-6 rad | 1.6e-5 m, 1.7e-6 rad | 3.0e-5 m, 1.4e-5 rad |
+//! | full authority: 1 s of random a = ±1 per motor, 47 rad/s peak | 3.0e-4 m, 1.8e-3 rad | 2.0e-5 m, 1.3e-4 rad | 1.6e-6 m, 1.1e-5 rad | 1.5e-6 m, 4.9e-6 rad |
+//!
+//! At racing rates RK4's truncation error is below f32 rounding from one substep on (more
+//! substeps only add rounding); at the full-authority rates of an untrained policy one
+//! substep loses 2 mrad per second. Two substeps keep both cases within 2e-5 m and 1.3e-4 rad
+//! at half the cost of four; `realistic` uses four because the motor speed is held over a
+//! substep (5 ms against its 30 ms motor lag).
+//!
+//! **Cost.** The propeller forces are computed once per substep (the rpm is held over it) and
+//! thrust is rotated with the third column of the attitude matrix only; see
+//! `docs/PERFORMANCE.md` for the env-step rate.
 
 use firmware_core::math::{Quat, Vec3};
 use firmware_core::vehicle::{Cf2x, MotorCommand, VehicleState};
@@ -42,7 +53,7 @@ pub struct Preset {
     pub linear_drag_per_s: f32,
     /// Gravity (m/s²). Default 9.81.
     pub gravity_mps2: f32,
-    /// Integration substeps per control period. Default 4.
+    /// RK4 substeps per control period. Default 2 (`realistic`: 4, to resolve its motor lag).
     pub substeps: u32,
 }
 
@@ -76,7 +87,7 @@ impl Preset {
             motor_time_constant_s: 0.0,
             linear_drag_per_s: 0.0,
             gravity_mps2: Cf2x::GRAVITY_MPS2,
-            substeps: 4,
+            substeps: 2,
         }
     }
 
@@ -87,6 +98,8 @@ impl Preset {
             name: "realistic",
             max_rpm: 21_702.0,
             motor_time_constant_s: 0.03,
+            // The motor speed is held over a substep: 5 ms against the 30 ms time constant.
+            substeps: 4,
             linear_drag_per_s: 0.1,
             ..Self::nominal()
         }
@@ -127,34 +140,67 @@ struct Derivative {
     angular_accel: Vec3,
 }
 
-fn derivative(p: &Preset, s: &VehicleState, rpm: &[f32; 4]) -> Derivative {
-    let mut force_z = 0.0;
-    let mut torque = Vec3::ZERO;
-    for ((r, pos), spin) in rpm
-        .iter()
-        .zip(Cf2x::PROPELLER_POSITIONS_M)
-        .zip(Cf2x::SPIN_SIGNS)
-    {
-        let r2 = r * r;
-        let f = p.thrust_scale * p.kf_n_per_rpm2 * r2;
-        force_z += f;
-        // τ = p × (0, 0, f) = (y f, −x f, 0)
-        torque += Vec3::new(
-            pos[1] * f,
-            -pos[0] * f,
-            spin * p.thrust_scale * p.km_nm_per_rpm2 * r2,
-        );
+/// What stays fixed during one substep: the propeller forces (the rpm is held over the
+/// substep) and the preset's constants, with the divisions done once.
+#[derive(Clone, Copy)]
+struct Forces {
+    /// Total thrust over mass (m/s², along body +z).
+    thrust_per_mass: f32,
+    /// Propeller torque (N·m, body frame).
+    torque: Vec3,
+    inertia: Vec3,
+    inv_inertia: Vec3,
+    drag_per_s: f32,
+    gravity_mps2: f32,
+}
+
+impl Forces {
+    fn new(p: &Preset, rpm: &[f32; 4]) -> Self {
+        let mut force_z = 0.0;
+        let mut torque = Vec3::ZERO;
+        let kf = p.thrust_scale * p.kf_n_per_rpm2;
+        let km = p.thrust_scale * p.km_nm_per_rpm2;
+        for ((r, pos), spin) in rpm
+            .iter()
+            .zip(Cf2x::PROPELLER_POSITIONS_M)
+            .zip(Cf2x::SPIN_SIGNS)
+        {
+            let r2 = r * r;
+            let f = kf * r2;
+            force_z += f;
+            // τ = p × (0, 0, f) = (y f, −x f, 0)
+            torque += Vec3::new(pos[1] * f, -pos[0] * f, spin * km * r2);
+        }
+        let j = Vec3::from_array(p.inertia_kgm2);
+        Self {
+            thrust_per_mass: force_z / p.mass_kg,
+            torque,
+            inertia: j,
+            inv_inertia: Vec3::new(1.0 / j.x, 1.0 / j.y, 1.0 / j.z),
+            drag_per_s: p.linear_drag_per_s,
+            gravity_mps2: p.gravity_mps2,
+        }
     }
-    let thrust_world = s.attitude.rotate(Vec3::new(0.0, 0.0, force_z));
-    let accel = thrust_world.scale(1.0 / p.mass_kg) - s.velocity_mps.scale(p.linear_drag_per_s)
-        + Vec3::new(0.0, 0.0, -p.gravity_mps2);
+}
+
+fn derivative(f: &Forces, s: &VehicleState) -> Derivative {
+    let q = s.attitude;
+    // R e_z: the third column of the rotation matrix of q.
+    let body_z = Vec3::new(
+        2.0 * (q.x * q.z + q.w * q.y),
+        2.0 * (q.y * q.z - q.w * q.x),
+        1.0 - 2.0 * (q.x * q.x + q.y * q.y),
+    );
+    let accel = body_z.scale(f.thrust_per_mass) - s.velocity_mps.scale(f.drag_per_s)
+        + Vec3::new(0.0, 0.0, -f.gravity_mps2);
     let w = s.body_rates_radps;
-    let j = Vec3::from_array(p.inertia_kgm2);
+    let j = f.inertia;
     let jw = Vec3::new(j.x * w.x, j.y * w.y, j.z * w.z);
-    let net = torque - w.cross(jw);
-    let angular_accel = Vec3::new(net.x / j.x, net.y / j.y, net.z / j.z);
+    let net = f.torque - w.cross(jw);
+    let ji = f.inv_inertia;
+    let angular_accel = Vec3::new(net.x * ji.x, net.y * ji.y, net.z * ji.z);
     // q̇ = ½ q ⊗ (0, ω)
-    let qd = s.attitude * Quat::new(0.0, w.x, w.y, w.z);
+    let qd = q * Quat::new(0.0, w.x, w.y, w.z);
     Derivative {
         velocity: s.velocity_mps,
         attitude: Quat::new(0.5 * qd.w, 0.5 * qd.x, 0.5 * qd.y, 0.5 * qd.z),
@@ -198,9 +244,13 @@ impl Body {
                 0.0
             }
         });
+        let alpha = if preset.motor_time_constant_s > 0.0 {
+            1.0 - libm::expf(-h / preset.motor_time_constant_s)
+        } else {
+            1.0
+        };
         for _ in 0..n {
-            if preset.motor_time_constant_s > 0.0 {
-                let alpha = 1.0 - libm::expf(-h / preset.motor_time_constant_s);
+            if alpha < 1.0 {
                 for (r, t) in self.rpm.iter_mut().zip(target) {
                     *r += alpha * (t - *r);
                 }
@@ -208,10 +258,11 @@ impl Body {
                 self.rpm = target;
             }
             let s = self.state;
-            let k1 = derivative(preset, &s, &self.rpm);
-            let k2 = derivative(preset, &advance(&s, &k1, 0.5 * h), &self.rpm);
-            let k3 = derivative(preset, &advance(&s, &k2, 0.5 * h), &self.rpm);
-            let k4 = derivative(preset, &advance(&s, &k3, h), &self.rpm);
+            let f = Forces::new(preset, &self.rpm);
+            let k1 = derivative(&f, &s);
+            let k2 = derivative(&f, &advance(&s, &k1, 0.5 * h));
+            let k3 = derivative(&f, &advance(&s, &k2, 0.5 * h));
+            let k4 = derivative(&f, &advance(&s, &k3, h));
             let sum = |f: fn(&Derivative) -> [f32; 4]| {
                 let (a, b, c, d) = (f(&k1), f(&k2), f(&k3), f(&k4));
                 core::array::from_fn::<f32, 4, _>(|i| (a[i] + 2.0 * b[i] + 2.0 * c[i] + d[i]) / 6.0)

@@ -88,13 +88,78 @@ fn reference_flight(commands: &[[f32; 4]]) -> ([f64; 3], [f64; 4]) {
     ([s[0], s[1], s[2]], [s[6], s[7], s[8], s[9]])
 }
 
+/// Position (m) and attitude (rad) error of the f32 integrator with `substeps` against the
+/// float64 reference after flying `commands` from rest.
+fn errors(commands: &[[f32; 4]], p_ref: [f64; 3], q_ref: [f64; 4], substeps: u32) -> (f64, f64) {
+    let p = Preset {
+        substeps,
+        ..Preset::paper()
+    };
+    let mut body = at_rest();
+    for c in commands {
+        body.step(&p, &MotorCommand { rpm: *c }, 0.02);
+    }
+    let s = body.state;
+    let dp = ((f64::from(s.position_m.x) - p_ref[0]).powi(2)
+        + (f64::from(s.position_m.y) - p_ref[1]).powi(2)
+        + (f64::from(s.position_m.z) - p_ref[2]).powi(2))
+    .sqrt();
+    // Rotation angle of q⁻¹ ⊗ q_ref: twice the norm of its vector part (small angles).
+    let [w, x, y, z] = s.attitude.to_array().map(f64::from);
+    let [rw, rx, ry, rz] = q_ref;
+    let err = [
+        w * rx - x * rw - y * rz + z * ry,
+        w * ry + x * rz - y * rw - z * rx,
+        w * rz - x * ry + y * rx - z * rw,
+    ];
+    (
+        dp,
+        2.0 * (err[0] * err[0] + err[1] * err[1] + err[2] * err[2]).sqrt(),
+    )
+}
+
+/// Largest body rate (rad/s) reached while flying `commands` from rest.
+fn peak_rate(commands: &[[f32; 4]]) -> f32 {
+    let p = Preset::paper();
+    let mut body = at_rest();
+    let mut peak = 0.0f32;
+    for c in commands {
+        body.step(&p, &MotorCommand { rpm: *c }, 0.02);
+        peak = peak.max(body.state.body_rates_radps.norm());
+    }
+    peak
+}
+
+/// Checks every substep count against the reference and prints the errors for the docs;
+/// the default preset must stay within `bound_m` / `bound_rad`.
+fn check(name: &str, commands: &[[f32; 4]], bound_m: f64, bound_rad: f64) {
+    let (p_ref, q_ref) = reference_flight(commands);
+    println!(
+        "{name}: {:.1} s, peak body rate {:.1} rad/s, travel {:.2} m",
+        commands.len() as f32 * 0.02,
+        peak_rate(commands),
+        (p_ref[0].powi(2) + p_ref[1].powi(2) + (p_ref[2] - 1.0).powi(2)).sqrt()
+    );
+    for substeps in [1, 2, 4, 8] {
+        let (dp, dq) = errors(commands, p_ref, q_ref, substeps);
+        println!(
+            "  {substeps} RK4 substep(s) per 20 ms, f32: position error {dp:.2e} m, attitude error {dq:.2e} rad"
+        );
+        if substeps == Preset::paper().substeps {
+            assert!(
+                dp < bound_m && dq < bound_rad,
+                "default preset: {dp} m, {dq} rad"
+            );
+        }
+    }
+}
+
 /// The f32 integrator (RK4, `substeps` per 20 ms) against the float64 reference over an
 /// aggressive 2 s manoeuvre with changing commands (up to ±1,500 rpm of differential thrust:
-/// rates of several rad/s). Prints the errors for the docs.
+/// rates of several rad/s).
 #[test]
 fn integrator_error_against_a_float64_reference() {
-    let preset = Preset::paper();
-    let h = preset.hover_rpm();
+    let h = Preset::paper().hover_rpm();
     let commands: Vec<[f32; 4]> = (0..100)
         .map(|k| {
             let t = k as f32 * 0.02;
@@ -107,36 +172,26 @@ fn integrator_error_against_a_float64_reference() {
             ]
         })
         .collect();
-    let (p_ref, q_ref) = reference_flight(&commands);
-    for substeps in [1, 2, 4, 8] {
-        let p = Preset {
-            substeps,
-            ..Preset::paper()
-        };
-        let mut body = at_rest();
-        for c in &commands {
-            body.step(&p, &MotorCommand { rpm: *c }, 0.02);
-        }
-        let s = body.state;
-        let dp = ((f64::from(s.position_m.x) - p_ref[0]).powi(2)
-            + (f64::from(s.position_m.y) - p_ref[1]).powi(2)
-            + (f64::from(s.position_m.z) - p_ref[2]).powi(2))
-        .sqrt();
-        // Rotation angle of q⁻¹ ⊗ q_ref: twice the norm of its vector part (small angles).
-        let [w, x, y, z] = s.attitude.to_array().map(f64::from);
-        let [rw, rx, ry, rz] = q_ref;
-        let err = [
-            w * rx - x * rw - y * rz + z * ry,
-            w * ry + x * rz - y * rw - z * rx,
-            w * rz - x * ry + y * rx - z * rw,
-        ];
-        let dq = 2.0 * (err[0] * err[0] + err[1] * err[1] + err[2] * err[2]).sqrt();
-        println!(
-            "{substeps} RK4 substep(s) per 20 ms, f32: position error {dp:.2e} m, attitude error {dq:.2e} rad after 2 s (travel {:.2} m)",
-            (p_ref[0].powi(2) + p_ref[1].powi(2) + (p_ref[2] - 1.0).powi(2)).sqrt()
-        );
-        if substeps == preset.substeps {
-            assert!(dp < 1e-4 && dq < 1e-4, "default preset: {dp} m, {dq} rad");
-        }
-    }
+    check("racing manoeuvre", &commands, 1e-4, 1e-4);
+}
+
+/// Full authority: every motor switching between the action limits (a = ±1, 2,894 to
+/// 26,043 rpm) in a pseudo-random pattern for 1 s, as an untrained policy does. Rates reach
+/// tens of rad/s, so the error per control period grows; the default preset must stay within
+/// 1 mm and 1 mrad after 1 s (one substep would not: 1.8 mrad).
+#[test]
+fn integrator_error_at_full_authority() {
+    let map = firmware_core::vehicle::ActionMap::PAPER;
+    let mut seed = 0x9e37_79b9_u32;
+    let commands: Vec<[f32; 4]> = (0..50)
+        .map(|_| {
+            core::array::from_fn(|_| {
+                seed ^= seed << 13;
+                seed ^= seed >> 17;
+                seed ^= seed << 5;
+                map.rpm(if seed & 1 == 0 { 1.0 } else { -1.0 })
+            })
+        })
+        .collect();
+    check("full authority", &commands, 1e-3, 1e-3);
 }
