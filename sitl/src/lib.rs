@@ -1,13 +1,17 @@
 //! # sitl
 //!
-//! The simulated world Overtake races in: cf2x quadrotor dynamics ([`dynamics`]) flying the
-//! figure-8 of `firmware-core`. The referee that scores races and the MAVLink bridge that
-//! flies firmware-core controllers as separate processes build on this crate (issues
-//! "world" and "sitl").
+//! The simulated world Overtake races in: cf2x quadrotor dynamics ([`dynamics`]), worlds of
+//! one or two drones on firmware-core's figure-8 with the crash rules ([`world`]), the pilots
+//! that fly them ([`pilot`]), the referee that scores 45 s episodes ([`referee`]), and
+//! evaluation over many seeded episodes with 95% intervals ([`eval`]).
 //!
-//! The track, the gate tests and the observation pipeline are firmware-core's: nothing here
-//! re-implements them.
+//! The track, the gate tests, the crash rules and the observation pipeline are
+//! firmware-core's: nothing here re-implements them.
 #![deny(missing_docs)]
 
 pub mod dynamics;
-pub mod time_trial;
+pub mod eval;
+pub mod pilot;
+pub mod referee;
+pub mod stats;
+pub mod world;

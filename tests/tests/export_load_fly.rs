@@ -3,11 +3,27 @@
 
 use firmware_core::blob::{AlignedBytes, Blob, Provenance};
 use firmware_core::policy::{Architecture, TableRow};
+use firmware_core::track::CrashRules;
 use firmware_core::track::Track;
 use firmware_core::{Controller, synthetic};
 use host_trainer::export::export_blob;
 use sitl::dynamics::Preset;
-use sitl::time_trial::fly;
+use sitl::pilot::Pilot;
+use sitl::referee::{EpisodeConfig, EpisodeMetrics, run_episode};
+use sitl::world::World;
+
+fn fly(pilot: &mut dyn Pilot, seconds: f32) -> EpisodeMetrics {
+    let world = World::figure_eight(Preset::paper(), CrashRules::STAGE1);
+    run_episode(
+        &world,
+        pilot,
+        None,
+        &EpisodeConfig::time_trial(seconds),
+        0,
+        false,
+    )
+    .metrics
+}
 
 #[test]
 fn exported_weights_load_and_fly() {
@@ -30,7 +46,7 @@ fn exported_weights_load_and_fly() {
 
     let track = Track::figure_eight();
     let mut controller = Controller::from_bytes(bytes.as_bytes(), track).expect("controller");
-    let summary = fly(&mut controller, &track, &Preset::paper(), 5.0, 0.02);
+    let summary = fly(&mut controller, 5.0);
     // Random weights do not race, but every step ran the policy (no fail-safe) and the
     // referee's books balance.
     assert_eq!(controller.fault_count(), 0);
@@ -46,7 +62,7 @@ fn a_stage2_blob_refuses_to_fly_without_an_opponent() {
     let bytes = AlignedBytes::new(&synthetic::blob(TableRow::G, 1).expect("encode"));
     let track = Track::figure_eight();
     let mut controller = Controller::from_bytes(bytes.as_bytes(), track).expect("controller");
-    let summary = fly(&mut controller, &track, &Preset::paper(), 1.0, 0.02);
+    let summary = fly(&mut controller, 1.0);
     // Every step is the fail-safe (motors stopped): it falls, crashes and is respawned.
     assert_eq!(controller.fault_count(), 50);
     assert!(summary.crashes >= 2);

@@ -1,0 +1,275 @@
+//! Evaluation: many seeded episodes flown in parallel, aggregated into the Table-1 row with
+//! 95% intervals, printed for people and written as JSON for programs.
+
+use crate::dynamics::Preset;
+use crate::pilot::PilotSpec;
+use crate::referee::{CrashCounts, Episode, EpisodeConfig, EpisodeMetrics, SpawnMode, run_episode};
+use crate::stats::{ci95, mean};
+use crate::world::World;
+use firmware_core::track::CrashRules;
+use rayon::prelude::*;
+use serde::Serialize;
+
+/// What to evaluate.
+#[derive(Clone, Debug)]
+pub struct EvalConfig {
+    /// Dynamics preset.
+    pub preset: Preset,
+    /// Number of episodes.
+    pub episodes: u32,
+    /// Simulated seconds per episode. Paper: 45.
+    pub seconds: f32,
+    /// Seed of the spawn draws (episode `i` uses stream `i` of it).
+    pub seed: u64,
+    /// Spawn mode; `None` picks stage 2 for races and stage 1 for time trials.
+    pub spawn: Option<SpawnMode>,
+}
+
+impl EvalConfig {
+    /// The spawn mode in effect: races start at the stage-2 spawn, time trials at stage 1.
+    pub fn spawn_mode(&self, race: bool) -> SpawnMode {
+        self.spawn.unwrap_or(if race {
+            SpawnMode::Stage2
+        } else {
+            SpawnMode::Stage1
+        })
+    }
+
+    /// The world episodes are flown in: the figure-8, stage-2 crash rules in a race (15 m
+    /// bounds, 0.2 m separation), stage-1 rules alone (25 m).
+    pub fn world(&self, race: bool) -> World {
+        World::figure_eight(
+            self.preset,
+            if race {
+                CrashRules::STAGE2
+            } else {
+                CrashRules::STAGE1
+            },
+        )
+    }
+}
+
+/// Flies `config.episodes` episodes of `ego` (against `opponent`, if any) in parallel; the
+/// result is in episode order and does not depend on the thread count. With `record`, each
+/// episode keeps its trace.
+pub fn evaluate(
+    ego: &PilotSpec,
+    opponent: Option<&PilotSpec>,
+    config: &EvalConfig,
+    record: bool,
+) -> Vec<Episode> {
+    let race = opponent.is_some();
+    let world = config.world(race);
+    let episode = EpisodeConfig {
+        seconds: config.seconds,
+        spawn: config.spawn_mode(race),
+        seed: config.seed,
+    };
+    (0..config.episodes)
+        .into_par_iter()
+        .map(|i| {
+            let mut e = ego.build(world.track);
+            match opponent {
+                Some(o) => {
+                    let mut o = o.build(world.track);
+                    run_episode(
+                        &world,
+                        &mut *e,
+                        Some(&mut *o),
+                        &episode,
+                        u64::from(i),
+                        record,
+                    )
+                }
+                None => run_episode(&world, &mut *e, None, &episode, u64::from(i), record),
+            }
+        })
+        .collect()
+}
+
+/// The Table-1 row over many episodes: means with Student-t 95% intervals over episodes,
+/// counts summed. Serialised as `sitl eval --json` writes it.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Report {
+    /// The ego pilot.
+    pub ego: String,
+    /// The opponent pilot, `None` in a time trial.
+    pub opponent: Option<String>,
+    /// Dynamics preset.
+    pub preset: String,
+    /// Spawn mode.
+    pub spawn: String,
+    /// Seed of the spawn draws.
+    pub seed: u64,
+    /// Episodes flown.
+    pub episodes: u32,
+    /// Simulated seconds per episode.
+    pub episode_seconds: f64,
+    /// Simulated seconds, all episodes.
+    pub sim_seconds: f64,
+    /// Gates the ego passed, all episodes.
+    pub gates_passed: u64,
+    /// Gates the ego encountered (passed or the target at a crash), all episodes.
+    pub gates_encountered: u64,
+    /// Mean over episodes of gates passed / encountered.
+    pub success_rate: f64,
+    /// 95% interval of `success_rate`; `None` for fewer than two episodes.
+    pub success_rate_ci95: Option<[f64; 2]>,
+    /// The ego's crash resets, all episodes.
+    pub crashes: u64,
+    /// Mean over episodes of crash resets per second (1/s).
+    pub crash_rate: f64,
+    /// 95% interval of `crash_rate` (1/s); `None` for fewer than two episodes.
+    pub crash_rate_ci95: Option<[f64; 2]>,
+    /// The fastest complete lap of any episode (s); `None` for a DNF.
+    pub best_lap_s: Option<f64>,
+    /// Mean of all complete laps (s); `None` without one.
+    pub mean_lap_s: Option<f64>,
+    /// Complete laps, all episodes.
+    pub laps: u64,
+    /// Overtakes by the ego, all episodes.
+    pub overtakes: u64,
+    /// Overtakes sustained for 2 s, all episodes.
+    pub sustained_overtakes: u64,
+    /// sustained_overtakes / overtakes; `None` (the paper's "Fail") without an overtake.
+    pub sustained_overtake_rate: Option<f64>,
+    /// The opponent's crash resets, all episodes (0 in a time trial).
+    pub opponent_crashes: u64,
+    /// The ego's crashes by cause, all episodes.
+    pub crash_causes: CrashCounts,
+}
+
+impl Report {
+    /// Aggregates `episodes`, labelled with the pilots and configuration.
+    pub fn new(
+        ego: &PilotSpec,
+        opponent: Option<&PilotSpec>,
+        config: &EvalConfig,
+        episodes: &[EpisodeMetrics],
+    ) -> Self {
+        let sum = |f: fn(&EpisodeMetrics) -> u32| episodes.iter().map(|e| u64::from(f(e))).sum();
+        let success: Vec<f64> = episodes.iter().map(EpisodeMetrics::success_rate).collect();
+        let crash: Vec<f64> = episodes
+            .iter()
+            .map(EpisodeMetrics::crash_rate_per_s)
+            .collect();
+        let laps: Vec<f64> = episodes
+            .iter()
+            .flat_map(|e| e.lap_times_s.iter().copied())
+            .collect();
+        let overtakes: u64 = sum(|e| e.overtakes);
+        let sustained: u64 = sum(|e| e.sustained_overtakes);
+        Self {
+            ego: ego.describe(),
+            opponent: opponent.map(PilotSpec::describe),
+            preset: config.preset.name.to_string(),
+            spawn: config.spawn_mode(opponent.is_some()).name().to_string(),
+            seed: config.seed,
+            episodes: episodes.len() as u32,
+            episode_seconds: f64::from(config.seconds),
+            sim_seconds: episodes.iter().map(|e| f64::from(e.sim_seconds)).sum(),
+            gates_passed: sum(|e| e.gates_passed),
+            gates_encountered: sum(|e| e.gates_encountered),
+            success_rate: mean(&success).unwrap_or(0.0),
+            success_rate_ci95: ci95(&success, 0.0, 1.0),
+            crashes: sum(|e| e.crashes),
+            crash_rate: mean(&crash).unwrap_or(0.0),
+            crash_rate_ci95: ci95(&crash, 0.0, f64::INFINITY),
+            best_lap_s: laps.iter().copied().reduce(f64::min),
+            mean_lap_s: mean(&laps),
+            laps: laps.len() as u64,
+            overtakes,
+            sustained_overtakes: sustained,
+            sustained_overtake_rate: (overtakes > 0).then(|| sustained as f64 / overtakes as f64),
+            opponent_crashes: sum(|e| e.opponent_crashes),
+            crash_causes: episodes
+                .iter()
+                .fold(CrashCounts::default(), |a, e| a.plus(e.crash_causes)),
+        }
+    }
+
+    /// The report as pretty JSON.
+    pub fn to_json(&self) -> String {
+        let mut json = serde_json::to_string_pretty(self)
+            .unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"));
+        json.push('\n');
+        json
+    }
+
+    /// The Table-1 row and a short summary, for a terminal.
+    pub fn table(&self) -> String {
+        let ci = |c: Option<[f64; 2]>, digits: usize| match c {
+            Some([a, b]) => format!(" [{a:.digits$}, {b:.digits$}]"),
+            None => String::new(),
+        };
+        let lap = match self.best_lap_s {
+            Some(t) => format!("{t:.2} s"),
+            None => "DNF".into(),
+        };
+        let overtake = match (self.opponent.is_some(), self.sustained_overtake_rate) {
+            (false, _) => "—".to_string(),
+            (true, None) => "Fail".to_string(),
+            (true, Some(r)) => format!("{r:.2} ({}/{})", self.sustained_overtakes, self.overtakes),
+        };
+        let mut out = String::new();
+        out += &format!(
+            "ego {}{}; preset {}, {} spawn, {} episodes x {:.0} s, seed {}\n",
+            self.ego,
+            self.opponent
+                .as_ref()
+                .map(|o| format!(" vs opponent {o}"))
+                .unwrap_or_default(),
+            self.preset,
+            self.spawn,
+            self.episodes,
+            self.episode_seconds,
+            self.seed
+        );
+        let rows = [
+            (
+                "success rate",
+                format!("{:.3}{}", self.success_rate, ci(self.success_rate_ci95, 3)),
+            ),
+            (
+                "crash rate (/s)",
+                format!("{:.3}{}", self.crash_rate, ci(self.crash_rate_ci95, 3)),
+            ),
+            ("lap time", lap),
+            ("sustained overtakes", overtake),
+        ];
+        let w: Vec<usize> = rows
+            .iter()
+            .map(|(h, v)| h.chars().count().max(v.chars().count()))
+            .collect();
+        let line = |cells: Vec<&str>| {
+            let mut s = String::from("|");
+            for (c, w) in cells.iter().zip(&w) {
+                s += &format!(" {c:<w$} |", w = *w);
+            }
+            s + "\n"
+        };
+        out += &line(rows.iter().map(|r| r.0).collect());
+        out += &line(rows.iter().map(|r| r.1.as_str()).collect());
+        out += &format!(
+            "gates {} passed / {} encountered, {} crashes, {} laps{}",
+            self.gates_passed,
+            self.gates_encountered,
+            self.crashes,
+            self.laps,
+            self.mean_lap_s
+                .map(|m| format!(" (mean {m:.2} s)"))
+                .unwrap_or_default()
+        );
+        if self.crashes > 0 {
+            let c = &self.crash_causes;
+            out += &format!(
+                " (gate frame {}, ground {}, bounds {}, collision {}, diverged {})",
+                c.gate_frame, c.ground, c.out_of_bounds, c.collision, c.non_finite
+            );
+        }
+        if self.opponent.is_some() {
+            out += &format!(", opponent crashes {}", self.opponent_crashes);
+        }
+        out + "\n"
+    }
+}

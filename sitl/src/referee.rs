@@ -1,0 +1,451 @@
+//! The referee: scores evaluation episodes per SPEC "Metrics".
+//!
+//! An episode is 45 s of simulated flight. Drone 0 is the ego, drone 1 (in a race) the
+//! opponent. After a crash the race restarts from a fresh spawn and the clock runs on; in a
+//! race any crash (the ego's, the opponent's, or their collision) restarts both drones, the
+//! paper's "episode reset". The referee counts, for the ego:
+//! - gates passed, and gates encountered (passed, or the target at a crash);
+//! - crash resets, and the opponent's crash resets separately;
+//! - lap times: g0 → g0 with no crash inside, timed at control-step resolution (20 ms);
+//! - overtakes: the ego's progress along the track (laps·length + arc length of the nearest
+//!   point of the centreline segment it is flying) goes from behind the opponent's to ahead;
+//!   an overtake is sustained once the ego has kept that lead for 2 s without a crash. An
+//!   overtake whose lead is lost, ended by a reset, or still under 2 s old when the episode
+//!   ends is not sustained.
+//!
+//! Gate passes and crashes come from [`World::judge`], i.e. firmware-core's gate test and
+//! crash rules; progress comes from firmware-core's [`Centerline`] and [`ArcLength`].
+
+use crate::pilot::Pilot;
+use crate::world::{CrashCause, Drone, DroneStep, SpawnPoint, World};
+use firmware_core::math::Vec3;
+use firmware_core::track::{ArcLength, Centerline, Track};
+use firmware_core::vehicle::MotorCommand;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// Seconds an overtaking ego must keep its lead for the overtake to be sustained.
+pub const SUSTAINED_LEAD_S: f32 = 2.0;
+
+/// Length of an evaluation episode in the paper (s).
+pub const EPISODE_SECONDS: f32 = 45.0;
+
+/// What one episode measured, for the ego.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct EpisodeMetrics {
+    /// Simulated time (s).
+    pub sim_seconds: f32,
+    /// Gates the ego passed.
+    pub gates_passed: u32,
+    /// Gates passed plus gates that were the ego's target when it crashed.
+    pub gates_encountered: u32,
+    /// The ego's crash resets.
+    pub crashes: u32,
+    /// The opponent's crash resets (races only).
+    pub opponent_crashes: u32,
+    /// Complete laps g0 → g0 without a crash inside (s, at control-step resolution), in
+    /// order.
+    pub lap_times_s: Vec<f64>,
+    /// Times the ego went from behind to ahead of the opponent.
+    pub overtakes: u32,
+    /// Overtakes whose lead the ego then held for [`SUSTAINED_LEAD_S`] without a crash.
+    pub sustained_overtakes: u32,
+    /// The ego's crashes by cause.
+    pub crash_causes: CrashCounts,
+}
+
+/// Crashes counted by cause.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct CrashCounts {
+    /// Crossed the target gate's plane outside the opening.
+    pub gate_frame: u32,
+    /// Below 0.1 m.
+    pub ground: u32,
+    /// Too far from the target gate.
+    pub out_of_bounds: u32,
+    /// Closer than 0.2 m to the other drone.
+    pub collision: u32,
+    /// Diverged (not finite).
+    pub non_finite: u32,
+}
+
+impl CrashCounts {
+    /// Counts one crash of cause `cause`.
+    pub fn add(&mut self, cause: CrashCause) {
+        let slot = match cause {
+            CrashCause::GateFrame { .. } => &mut self.gate_frame,
+            CrashCause::Ground => &mut self.ground,
+            CrashCause::OutOfBounds => &mut self.out_of_bounds,
+            CrashCause::Collision { .. } => &mut self.collision,
+            CrashCause::NonFinite => &mut self.non_finite,
+        };
+        *slot += 1;
+    }
+
+    /// The sum of two counts.
+    pub fn plus(self, o: Self) -> Self {
+        Self {
+            gate_frame: self.gate_frame + o.gate_frame,
+            ground: self.ground + o.ground,
+            out_of_bounds: self.out_of_bounds + o.out_of_bounds,
+            collision: self.collision + o.collision,
+            non_finite: self.non_finite + o.non_finite,
+        }
+    }
+}
+
+impl EpisodeMetrics {
+    /// Gates passed / gates encountered; 0 when the ego met no gate at all (it never reached
+    /// one in the whole episode, which is not a success).
+    pub fn success_rate(&self) -> f64 {
+        if self.gates_encountered == 0 {
+            0.0
+        } else {
+            f64::from(self.gates_passed) / f64::from(self.gates_encountered)
+        }
+    }
+
+    /// Crash resets per second of simulated time.
+    pub fn crash_rate_per_s(&self) -> f64 {
+        if self.sim_seconds > 0.0 {
+            f64::from(self.crashes) / f64::from(self.sim_seconds)
+        } else {
+            0.0
+        }
+    }
+
+    /// The fastest lap (s), `None` for a DNF.
+    pub fn best_lap_s(&self) -> Option<f64> {
+        self.lap_times_s.iter().copied().reduce(f64::min)
+    }
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Lead {
+    Behind,
+    Ahead { since_s: f32, sustained: bool },
+}
+
+/// The referee's bookkeeping for one episode. Feed it every step with [`Referee::score`];
+/// call [`Referee::restart`] after every (re)spawn.
+#[derive(Clone, Debug)]
+pub struct Referee {
+    line: Centerline,
+    arc: ArcLength,
+    segments: u64,
+    dt_s: f32,
+    steps: u32,
+    metrics: EpisodeMetrics,
+    lap_start_step: Option<u32>,
+    /// Absolute index of the centreline segment each drone flies (its target's segment,
+    /// counted on across laps).
+    segment: [u64; 2],
+    lead: Lead,
+}
+
+impl Referee {
+    /// A referee for `track` at control period `dt_s` (s).
+    pub fn new(track: &Track<'_>, dt_s: f32) -> Self {
+        let line = Centerline::new(track);
+        Self {
+            arc: ArcLength::new(&line),
+            segments: line.segments().max(1) as u64,
+            line,
+            dt_s,
+            steps: 0,
+            metrics: EpisodeMetrics::default(),
+            lap_start_step: None,
+            segment: [0; 2],
+            lead: Lead::Behind,
+        }
+    }
+
+    /// Elapsed simulated time (s).
+    pub fn time_s(&self) -> f32 {
+        self.steps as f32 * self.dt_s
+    }
+
+    /// The drones were (re)spawned: progress restarts from their targets, the lap timer stops,
+    /// and the lead is taken as it stands (a spawn is not an overtake).
+    pub fn restart(&mut self, drones: &[Drone]) {
+        for (seg, d) in self.segment.iter_mut().zip(drones) {
+            // The segment that ends at the target; offset by a lap so it never goes below 0.
+            *seg = d.progress.target as u64 + self.segments - 1;
+        }
+        self.lap_start_step = None;
+        self.lead = match self.lead_m(drones) {
+            Some(l) if l > 0.0 => Lead::Ahead {
+                since_s: self.time_s(),
+                sustained: true,
+            },
+            _ => Lead::Behind,
+        };
+    }
+
+    /// Progress of drone `i` along the track (m): laps·length + arc length of the nearest
+    /// point of the centreline segment it flies.
+    pub fn progress_m(&self, drones: &[Drone], i: usize) -> Option<f32> {
+        let (d, seg) = (drones.get(i)?, *self.segment.get(i)?);
+        let k = (seg % self.segments) as usize;
+        let s = self.line.nearest_on_segment(k, d.position_m());
+        let laps = (seg / self.segments) as f32;
+        Some(laps * self.arc.length_m() + self.arc.along_segment(k, s - k as f32))
+    }
+
+    /// The ego's lead over the opponent (m); `None` without an opponent.
+    pub fn lead_m(&self, drones: &[Drone]) -> Option<f32> {
+        Some(self.progress_m(drones, 0)? - self.progress_m(drones, 1)?)
+    }
+
+    /// Scores one step (after [`World::step`] or [`World::judge`]): returns true when a
+    /// crash ends this run and the caller must respawn the drones and call
+    /// [`Referee::restart`].
+    pub fn score(&mut self, drones: &[Drone], steps: &[DroneStep]) -> bool {
+        self.steps += 1;
+        let t = self.time_s();
+        let ego = steps.first().copied().unwrap_or_default();
+        let opponent = steps.get(1).copied();
+        if let Some(cause) = ego.crash {
+            self.metrics.crash_causes.add(cause);
+            self.metrics.crashes += 1;
+            self.metrics.gates_encountered += 1;
+        } else if let Some(gate) = ego.passed_gate() {
+            self.metrics.gates_passed += 1;
+            self.metrics.gates_encountered += 1;
+            self.segment[0] += 1;
+            if gate == 0 {
+                if let Some(k0) = self.lap_start_step {
+                    self.metrics
+                        .lap_times_s
+                        .push(f64::from(self.steps - k0) * f64::from(self.dt_s));
+                }
+                self.lap_start_step = Some(self.steps);
+            }
+        }
+        if let Some(o) = opponent {
+            if o.crash.is_some() {
+                self.metrics.opponent_crashes += 1;
+            } else if o.passed_gate().is_some() {
+                self.segment[1] += 1;
+            }
+        }
+        let reset = ego.crash.is_some() || opponent.is_some_and(|o| o.crash.is_some());
+        if reset {
+            self.lead = Lead::Behind;
+            return true;
+        }
+        if let Some(lead) = self.lead_m(drones) {
+            self.lead = match self.lead {
+                Lead::Behind if lead > 0.0 => {
+                    self.metrics.overtakes += 1;
+                    Lead::Ahead {
+                        since_s: t,
+                        sustained: false,
+                    }
+                }
+                Lead::Ahead { .. } if lead <= 0.0 => Lead::Behind,
+                Lead::Ahead {
+                    since_s,
+                    sustained: false,
+                } if t - since_s >= SUSTAINED_LEAD_S - 0.5 * self.dt_s => {
+                    self.metrics.sustained_overtakes += 1;
+                    Lead::Ahead {
+                        since_s,
+                        sustained: true,
+                    }
+                }
+                other => other,
+            };
+        }
+        false
+    }
+
+    /// The episode's metrics so far.
+    pub fn metrics(&self) -> &EpisodeMetrics {
+        &self.metrics
+    }
+
+    /// Ends the episode.
+    pub fn finish(mut self) -> EpisodeMetrics {
+        self.metrics.sim_seconds = self.time_s();
+        self.metrics
+    }
+}
+
+/// Where drones start (and restart after a crash).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SpawnMode {
+    /// The paper's fixed stage-1 spawn, (−1, −1, 1) targeting g0 (time trials).
+    Stage1,
+    /// The paper's stage-2 spawn before a random gate (races; the ego alone uses the ego's
+    /// place in a time trial).
+    Stage2,
+    /// A random point of the centreline, at rest (time trials).
+    AlongTrack,
+}
+
+impl SpawnMode {
+    /// The mode called `name` ("stage1", "stage2", "along-track").
+    pub fn by_name(name: &str) -> Option<Self> {
+        match name {
+            "stage1" => Some(Self::Stage1),
+            "stage2" => Some(Self::Stage2),
+            "along-track" => Some(Self::AlongTrack),
+            _ => None,
+        }
+    }
+
+    /// The mode's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Stage1 => "stage1",
+            Self::Stage2 => "stage2",
+            Self::AlongTrack => "along-track",
+        }
+    }
+
+    /// Spawn points `[ego, opponent]` drawn from `rng` (the opponent's is unused alone).
+    pub fn draw(self, track: &Track<'_>, line: &Centerline, rng: &mut impl Rng) -> [SpawnPoint; 2] {
+        match self {
+            Self::Stage1 => {
+                let s = crate::world::stage1_spawn();
+                [s, s]
+            }
+            Self::Stage2 => {
+                crate::world::stage2_spawn(track, rng.random_range(0..track.len().max(1)))
+            }
+            Self::AlongTrack => {
+                let s = crate::world::along_track_spawn(
+                    line,
+                    rng.random_range(0.0..line.segments().max(1) as f32),
+                );
+                [s, s]
+            }
+        }
+    }
+}
+
+/// The ego's and opponent's positions at every step of an episode, for plots.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Trace {
+    /// Control period (s).
+    pub dt_s: f32,
+    /// Ego position after each step (m, world).
+    pub ego_m: Vec<Vec3>,
+    /// Opponent position after each step (m, world); empty in a time trial.
+    pub opponent_m: Vec<Vec3>,
+    /// Steps after which the drones were respawned.
+    pub respawns: Vec<u32>,
+}
+
+/// How to run one episode.
+#[derive(Clone, Copy, Debug)]
+pub struct EpisodeConfig {
+    /// Simulated seconds. Paper: 45.
+    pub seconds: f32,
+    /// Where drones start and restart.
+    pub spawn: SpawnMode,
+    /// Seed of the spawn draws.
+    pub seed: u64,
+}
+
+impl EpisodeConfig {
+    /// A time trial of `seconds` from the paper's fixed stage-1 spawn.
+    pub fn time_trial(seconds: f32) -> Self {
+        Self {
+            seconds,
+            spawn: SpawnMode::Stage1,
+            seed: 0,
+        }
+    }
+}
+
+/// One scored episode: the metrics and, when asked for, the trace.
+#[derive(Clone, Debug, Default)]
+pub struct Episode {
+    /// The ego's metrics.
+    pub metrics: EpisodeMetrics,
+    /// Positions over time (empty unless recorded).
+    pub trace: Trace,
+}
+
+/// The random generator of episode `index` of an evaluation seeded `seed`: independent
+/// streams, the same on every machine and thread count.
+pub fn episode_rng(seed: u64, index: u64) -> ChaCha8Rng {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(index);
+    rng
+}
+
+/// Flies one episode: `ego` alone (a time trial) or against `opponent` (a race), scored by the
+/// referee. With `record`, the trace of positions is kept.
+pub fn run_episode(
+    world: &World,
+    ego: &mut dyn Pilot,
+    opponent: Option<&mut dyn Pilot>,
+    config: &EpisodeConfig,
+    index: u64,
+    record: bool,
+) -> Episode {
+    let mut rng = episode_rng(config.seed, index);
+    match opponent {
+        None => run::<1>(world, [ego], config, &mut rng, record),
+        Some(o) => run::<2>(world, [ego, o], config, &mut rng, record),
+    }
+}
+
+fn run<const N: usize>(
+    world: &World,
+    mut pilots: [&mut dyn Pilot; N],
+    config: &EpisodeConfig,
+    rng: &mut ChaCha8Rng,
+    record: bool,
+) -> Episode {
+    let line = Centerline::new(&world.track);
+    let mut referee = Referee::new(&world.track, world.dt_s);
+    let mut trace = Trace {
+        dt_s: world.dt_s,
+        ..Trace::default()
+    };
+    let spawn = |pilots: &mut [&mut dyn Pilot; N], rng: &mut ChaCha8Rng| {
+        let points = config.spawn.draw(&world.track, &line, rng);
+        let drones: [Drone; N] =
+            core::array::from_fn(|i| Drone::spawned(points.get(i).copied().unwrap_or(points[0])));
+        for (p, d) in pilots.iter_mut().zip(&drones) {
+            p.reset(d.progress.target);
+        }
+        drones
+    };
+    let mut drones = spawn(&mut pilots, rng);
+    referee.restart(&drones);
+    let steps = (config.seconds / world.dt_s).round() as u32;
+    for k in 0..steps {
+        let commands: [MotorCommand; N] = core::array::from_fn(|i| {
+            let own = drones[i].body.state;
+            let other = if N == 2 {
+                drones.get(1 - i).map(|d| d.body.state)
+            } else {
+                None
+            };
+            pilots[i].command(&own, other.as_ref())
+        });
+        let results = world.step(&mut drones, &commands);
+        if record {
+            trace.ego_m.push(drones[0].position_m());
+            if let Some(o) = drones.get(1) {
+                trace.opponent_m.push(o.position_m());
+            }
+        }
+        if referee.score(&drones, &results) {
+            drones = spawn(&mut pilots, rng);
+            referee.restart(&drones);
+            if record {
+                trace.respawns.push(k + 1);
+            }
+        }
+    }
+    Episode {
+        metrics: referee.finish(),
+        trace,
+    }
+}

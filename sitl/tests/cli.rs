@@ -1,0 +1,164 @@
+//! `sitl eval` and `sitl fly` as a user runs them: the Table-1 row, the JSON keys, and clear
+//! errors with a non-zero exit for bad input.
+
+use std::process::Command;
+
+fn sitl(args: &[&str]) -> (bool, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_sitl"))
+        .args(args)
+        .output()
+        .expect("runs");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+fn temp(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("sitl-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir.join(name)
+}
+
+#[test]
+fn eval_prints_the_row_and_writes_every_json_key() {
+    let json = temp("race.json");
+    let (ok, out, err) = sitl(&[
+        "eval",
+        "--ego",
+        "baseline:8:0.4",
+        "--opponent",
+        "baseline:6.5",
+        "--preset",
+        "paper",
+        "--episodes",
+        "3",
+        "--seconds",
+        "20",
+        "--seed",
+        "5",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(out.contains("| success rate"), "{out}");
+    assert!(out.contains("sustained overtakes"), "{out}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    for key in [
+        "episodes",
+        "sim_seconds",
+        "gates_passed",
+        "gates_encountered",
+        "success_rate",
+        "success_rate_ci95",
+        "crashes",
+        "crash_rate",
+        "crash_rate_ci95",
+        "best_lap_s",
+        "mean_lap_s",
+        "laps",
+        "overtakes",
+        "sustained_overtakes",
+        "sustained_overtake_rate",
+    ] {
+        assert!(v.get(key).is_some(), "missing key {key}");
+    }
+    assert_eq!(v["episodes"], 3);
+    assert_eq!(v["sim_seconds"].as_f64().unwrap().round(), 60.0);
+    assert!(v["success_rate_ci95"].is_array());
+}
+
+#[test]
+fn a_dnf_and_no_overtake_are_null() {
+    let json = temp("dnf.json");
+    // 5 s is too short for a lap; alone there is no overtake.
+    let (ok, _, err) = sitl(&[
+        "eval",
+        "--ego",
+        "baseline",
+        "--episodes",
+        "2",
+        "--seconds",
+        "5",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    assert!(v["best_lap_s"].is_null());
+    assert!(v["mean_lap_s"].is_null());
+    assert!(v["sustained_overtake_rate"].is_null());
+}
+
+#[test]
+fn bad_input_is_a_clear_error() {
+    let corrupt = temp("corrupt.blob");
+    std::fs::write(&corrupt, b"OVTK\x01\x00\x00\x00 definitely not a blob").unwrap();
+    let cases: [(&[&str], &str); 7] = [
+        (
+            &["eval", "--ego", "/no/such.blob"],
+            "cannot read /no/such.blob",
+        ),
+        (
+            &["eval", "--ego", corrupt.to_str().unwrap()],
+            "not a usable policy blob",
+        ),
+        (
+            &["eval", "--ego", "baseline", "--preset", "moon"],
+            "unknown preset 'moon'",
+        ),
+        (
+            &["eval", "--ego", "baseline", "--episodes", "0"],
+            "0 is not in 1..=100000",
+        ),
+        (
+            &["eval", "--ego", "baseline", "--seconds", "0"],
+            "number of seconds",
+        ),
+        (&["eval", "--ego", "baseline:fast"], "cruise speed must be"),
+        (&["eval"], "--ego"),
+    ];
+    for (args, message) in cases {
+        let (ok, _, err) = sitl(args);
+        assert!(!ok, "{args:?} succeeded");
+        assert!(err.contains(message), "{args:?}: {err}");
+    }
+}
+
+#[test]
+fn a_blob_that_observes_an_opponent_needs_one() {
+    let blob = temp("g.blob");
+    std::fs::write(
+        &blob,
+        firmware_core::synthetic::blob(firmware_core::policy::TableRow::G, 3).unwrap(),
+    )
+    .unwrap();
+    let (ok, _, err) = sitl(&["eval", "--ego", blob.to_str().unwrap()]);
+    assert!(!ok);
+    assert!(err.contains("observes an opponent"), "{err}");
+    // With one it flies (random weights crash, but the race is scored).
+    let (ok, out, err) = sitl(&[
+        "eval",
+        "--ego",
+        blob.to_str().unwrap(),
+        "--opponent",
+        "baseline",
+        "--episodes",
+        "2",
+        "--seconds",
+        "3",
+    ]);
+    assert!(ok, "{err}");
+    assert!(out.contains("| success rate"));
+}
+
+#[test]
+fn fly_prints_the_laps() {
+    let (ok, out, err) = sitl(&["fly", "--seconds", "30"]);
+    assert!(ok, "{err}");
+    assert!(out.contains("laps (s)"), "{out}");
+    assert!(out.contains("best lap"), "{out}");
+}
