@@ -7,4 +7,5 @@
 //! "stage2" issues.
 #![deny(missing_docs)]
 
+pub mod env;
 pub mod export;

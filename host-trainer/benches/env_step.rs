@@ -1,0 +1,33 @@
+//! The training environment's step rate: 4,096 stage-1 envs (dynamics, gate test, crash
+//! rules, rewards with their terms, respawns, observations), rayon over the cores.
+//!
+//! `cargo bench -p host-trainer --bench env_step`
+
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use host_trainer::env::{EnvConfig, RewardWeights, TrainEnv};
+use sitl::dynamics::Preset;
+use sitl::referee::SpawnMode;
+
+fn bench(c: &mut Criterion) {
+    let n = 4096;
+    let mut env = TrainEnv::new(EnvConfig {
+        num_envs: n,
+        preset: Preset::paper(),
+        spawn: SpawnMode::AlongTrack,
+        episode_s: 15.0,
+        random_initial_episode_length: true,
+        reward: RewardWeights::default(),
+        seed: 0,
+    });
+    // Near-hover actions with a per-env differential, as an early policy flies.
+    let actions: Vec<f32> = (0..n * 4)
+        .map(|i| 0.52 + 0.05 * ((i % 9) as f32 - 4.0) / 4.0)
+        .collect();
+    let mut g = c.benchmark_group("train_env");
+    g.throughput(Throughput::Elements(n as u64));
+    g.bench_function("step_4096", |b| b.iter(|| env.step(&actions)));
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

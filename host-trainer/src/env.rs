@@ -1,0 +1,398 @@
+//! The vectorised training environment: many independent sitl worlds stepped in parallel
+//! with rayon, rewards per SPEC "Rewards" with every term kept apart for the logs, and
+//! observations built only by firmware-core's pipeline (the one the controller runs).
+//!
+//! Stage 1 (time trial): one drone per world. Each env auto-resets: after a crash or a
+//! time-out its slot is respawned and the observation returned is the new episode's first.
+//!
+//! **Reward of a step** (SPEC, paper eq. 4–5, every term × dt):
+//! - progress `λ₁ (d_{t−1} − d_t)`, both distances to the gate the drone was flying to during
+//!   the step (so a gate pass is not a jump to the next gate's distance);
+//! - command `− λ₂ ‖a_t‖ − λ₃ ‖a_t − a_{t−1}‖²` on the clipped actions the motors got;
+//! - pass `1 − ‖p_t − g‖` when the step passed gate g;
+//! - crash `− 5` when the step crashed (gate frame, ground, bounds, non-finite).
+
+use firmware_core::nn::ACTION_DIM;
+use firmware_core::observation::{ObservationLayout, ObservationSpec};
+use firmware_core::track::Centerline;
+use firmware_core::vehicle::ActionMap;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use sitl::dynamics::Preset;
+use sitl::referee::SpawnMode;
+use sitl::world::{Drone, World};
+
+/// Envs per rayon task.
+const CHUNK: usize = 128;
+
+/// The reward's weights (SPEC "Rewards"; defaults are the paper's).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RewardWeights {
+    /// λ₁, progress toward the target gate (per m). Paper 0.5.
+    pub progress: f32,
+    /// λ₂, action magnitude ‖a‖. Paper 0.0005.
+    pub command: f32,
+    /// λ₃, action change ‖a_t − a_{t−1}‖². Paper 0.0002.
+    pub smoothness: f32,
+    /// Scale of the pass reward `1 − ‖rel_gate‖`. Paper 1.
+    pub pass: f32,
+    /// Crash penalty. Paper 5.
+    pub crash: f32,
+}
+
+impl Default for RewardWeights {
+    fn default() -> Self {
+        Self {
+            progress: 0.5,
+            command: 0.0005,
+            smoothness: 0.0002,
+            pass: 1.0,
+            crash: 5.0,
+        }
+    }
+}
+
+/// The reward's terms summed over steps and envs, each already × dt and signed as it enters
+/// the reward (so `total` is their sum).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RewardTerms {
+    /// Progress toward the target gate.
+    pub progress: f64,
+    /// − action magnitude.
+    pub command: f64,
+    /// − action change.
+    pub smoothness: f64,
+    /// Gate passes.
+    pub pass: f64,
+    /// − crashes.
+    pub crash: f64,
+}
+
+impl RewardTerms {
+    /// Sum of the terms.
+    pub fn total(&self) -> f64 {
+        self.progress + self.command + self.smoothness + self.pass + self.crash
+    }
+
+    fn add(&mut self, o: &Self) {
+        self.progress += o.progress;
+        self.command += o.command;
+        self.smoothness += o.smoothness;
+        self.pass += o.pass;
+        self.crash += o.crash;
+    }
+}
+
+/// How the training environment is built.
+#[derive(Clone, Debug)]
+pub struct EnvConfig {
+    /// Number of parallel envs.
+    pub num_envs: usize,
+    /// Dynamics preset.
+    pub preset: Preset,
+    /// Where episodes start: the paper's fixed stage-1 spawn or along the track.
+    pub spawn: SpawnMode,
+    /// Episode length (s) before a time-out. Paper stage 1: 15.
+    pub episode_s: f32,
+    /// Start every env at a random point of its first episode (RSL-RL's
+    /// `init_at_random_ep_len`), so that time-outs are spread over iterations.
+    pub random_initial_episode_length: bool,
+    /// Reward weights.
+    pub reward: RewardWeights,
+    /// Seed of the spawns and initial lengths (env i uses stream i).
+    pub seed: u64,
+}
+
+/// Per-step statistics of the whole batch, drained by [`TrainEnv::take_stats`].
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct EnvStats {
+    /// Env-steps taken.
+    pub steps: u64,
+    /// Reward terms summed over those steps.
+    pub terms: RewardTerms,
+    /// Gates passed.
+    pub gates_passed: u64,
+    /// Crashes (episode ends that are not time-outs).
+    pub crashes: u64,
+    /// Episodes ended by the time limit.
+    pub timeouts: u64,
+}
+
+impl EnvStats {
+    /// Gates passed / (gates passed + crashes): the success rate of SPEC "Metrics" over the
+    /// steps counted (each crash meets one gate it did not pass).
+    pub fn success_rate(&self) -> f64 {
+        let met = self.gates_passed + self.crashes;
+        if met == 0 {
+            0.0
+        } else {
+            self.gates_passed as f64 / met as f64
+        }
+    }
+
+    fn add(&mut self, o: &Self) {
+        self.steps += o.steps;
+        self.terms.add(&o.terms);
+        self.gates_passed += o.gates_passed;
+        self.crashes += o.crashes;
+        self.timeouts += o.timeouts;
+    }
+}
+
+#[derive(Clone, Debug)]
+struct Slot {
+    drones: [Drone; 1],
+    previous_action: [f32; ACTION_DIM],
+    steps: u32,
+    rng: ChaCha8Rng,
+    stats: EnvStats,
+}
+
+/// Many stage-1 worlds with their observations, rewards and episode ends.
+#[derive(Clone, Debug)]
+pub struct TrainEnv {
+    world: World,
+    line: Centerline,
+    spec: ObservationSpec,
+    map: ActionMap,
+    config: EnvConfig,
+    max_steps: u32,
+    slots: Vec<Slot>,
+    observations: Vec<f32>,
+    rewards: Vec<f32>,
+    dones: Vec<bool>,
+    timeouts: Vec<bool>,
+}
+
+/// Observation size of stage 1.
+pub const OBS_DIM: usize = 17;
+
+impl TrainEnv {
+    /// `config.num_envs` envs, each spawned (at a random point of its first episode when
+    /// `random_initial_episode_length`).
+    pub fn new(config: EnvConfig) -> Self {
+        let world = World::figure_eight(config.preset, firmware_core::track::CrashRules::STAGE1);
+        let line = Centerline::new(&world.track);
+        let max_steps = ((config.episode_s / world.dt_s).round() as u32).max(1);
+        let n = config.num_envs;
+        let mut env = Self {
+            world,
+            line,
+            spec: ObservationSpec::paper(ObservationLayout::TimeTrial17),
+            map: ActionMap::PAPER,
+            max_steps,
+            slots: Vec::with_capacity(n),
+            observations: vec![0.0; n * OBS_DIM],
+            rewards: vec![0.0; n],
+            dones: vec![false; n],
+            timeouts: vec![false; n],
+            config,
+        };
+        for i in 0..n {
+            let mut rng = ChaCha8Rng::seed_from_u64(env.config.seed);
+            rng.set_stream(i as u64);
+            let steps = if env.config.random_initial_episode_length {
+                rng.random_range(0..max_steps)
+            } else {
+                0
+            };
+            let mut slot = Slot {
+                drones: [Drone::default()],
+                previous_action: [0.0; ACTION_DIM],
+                steps,
+                rng,
+                stats: EnvStats::default(),
+            };
+            respawn(&env.world, &env.line, env.config.spawn, &mut slot);
+            slot.steps = steps;
+            env.slots.push(slot);
+        }
+        for (slot, obs) in env
+            .slots
+            .iter()
+            .zip(env.observations.chunks_exact_mut(OBS_DIM))
+        {
+            observe(&env.world, &env.spec, slot, obs);
+        }
+        env
+    }
+
+    /// Number of envs.
+    pub fn num_envs(&self) -> usize {
+        self.slots.len()
+    }
+
+    /// Env-steps per episode before a time-out.
+    pub fn max_episode_steps(&self) -> u32 {
+        self.max_steps
+    }
+
+    /// The observation spec every observation follows (recorded in exported blobs).
+    pub fn observation_spec(&self) -> ObservationSpec {
+        self.spec
+    }
+
+    /// Current observations, `num_envs × 17`, row-major.
+    pub fn observations(&self) -> &[f32] {
+        &self.observations
+    }
+
+    /// Rewards of the last step.
+    pub fn rewards(&self) -> &[f32] {
+        &self.rewards
+    }
+
+    /// Whether each env's episode ended in the last step (crash or time-out); its
+    /// observation is already the next episode's first.
+    pub fn dones(&self) -> &[bool] {
+        &self.dones
+    }
+
+    /// Whether each episode end of the last step was a time-out (to bootstrap with γ·V).
+    pub fn timeouts(&self) -> &[bool] {
+        &self.timeouts
+    }
+
+    /// One control step of every env: `actions` is `num_envs × 4`, row-major, unclipped (the
+    /// policy's samples); they are clipped to [−1, 1] (a NaN to 0) before the motors and the
+    /// reward. An action slice of the wrong length is refused and nothing moves.
+    pub fn step(&mut self, actions: &[f32]) -> Result<(), ActionShapeError> {
+        if actions.len() != self.slots.len() * ACTION_DIM {
+            return Err(ActionShapeError {
+                expected: self.slots.len() * ACTION_DIM,
+                got: actions.len(),
+            });
+        }
+        let (world, spec, map, reward, max_steps) = (
+            &self.world,
+            &self.spec,
+            &self.map,
+            &self.config.reward,
+            self.max_steps,
+        );
+        let line = &self.line;
+        let spawn_mode = self.config.spawn;
+        self.slots
+            .par_chunks_mut(CHUNK)
+            .zip(self.observations.par_chunks_mut(CHUNK * OBS_DIM))
+            .zip(self.rewards.par_chunks_mut(CHUNK))
+            .zip(self.dones.par_chunks_mut(CHUNK))
+            .zip(self.timeouts.par_chunks_mut(CHUNK))
+            .zip(actions.par_chunks(CHUNK * ACTION_DIM))
+            .for_each(|(((((slots, obs), rew), done), timeout), act)| {
+                for (i, slot) in slots.iter_mut().enumerate() {
+                    let a: [f32; ACTION_DIM] = core::array::from_fn(|k| {
+                        let v = act.get(i * ACTION_DIM + k).copied().unwrap_or(0.0);
+                        if v.is_finite() {
+                            v.clamp(-1.0, 1.0)
+                        } else {
+                            0.0
+                        }
+                    });
+                    let (r, crashed, timed_out) =
+                        step_slot(world, map, reward, max_steps, slot, &a);
+                    if crashed || timed_out {
+                        respawn(world, line, spawn_mode, slot);
+                    }
+                    rew[i] = r;
+                    done[i] = crashed || timed_out;
+                    timeout[i] = timed_out;
+                    observe(world, spec, slot, &mut obs[i * OBS_DIM..(i + 1) * OBS_DIM]);
+                }
+            });
+        Ok(())
+    }
+
+    /// The statistics since the last call, summed over envs, and reset.
+    pub fn take_stats(&mut self) -> EnvStats {
+        let mut total = EnvStats::default();
+        for s in &mut self.slots {
+            total.add(&s.stats);
+            s.stats = EnvStats::default();
+        }
+        total
+    }
+}
+
+/// The actions given to [`TrainEnv::step`] do not have `num_envs × 4` values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ActionShapeError {
+    /// Values expected.
+    pub expected: usize,
+    /// Values given.
+    pub got: usize,
+}
+
+impl core::fmt::Display for ActionShapeError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(
+            f,
+            "expected {} action values (envs × 4), got {}",
+            self.expected, self.got
+        )
+    }
+}
+
+impl std::error::Error for ActionShapeError {}
+
+/// A new episode in `slot`: a spawn drawn from its generator, the previous action zeroed.
+fn respawn(world: &World, line: &Centerline, mode: SpawnMode, slot: &mut Slot) {
+    let [spawn, _] = mode.draw(&world.track, line, &mut slot.rng);
+    slot.drones = [Drone::spawned(spawn)];
+    slot.previous_action = [0.0; ACTION_DIM];
+    slot.steps = 0;
+}
+
+/// Steps one env; returns (reward, crashed, timed out).
+fn step_slot(
+    world: &World,
+    map: &ActionMap,
+    w: &RewardWeights,
+    max_steps: u32,
+    slot: &mut Slot,
+    action: &[f32; ACTION_DIM],
+) -> (f32, bool, bool) {
+    let d = &slot.drones[0];
+    let gate = world.track.gate(d.progress.target).center_m;
+    let before = d.position_m();
+    let [result] = world.step(&mut slot.drones, &[map.command(action)]);
+    let after = slot.drones[0].position_m();
+    let dt = world.dt_s;
+    let norm = |v: &[f32; ACTION_DIM]| v.iter().map(|x| x * x).sum::<f32>();
+    let change: [f32; ACTION_DIM] = core::array::from_fn(|k| action[k] - slot.previous_action[k]);
+    let crashed = result.crash.is_some();
+    let mut terms = RewardTerms {
+        command: f64::from(-dt * w.command * norm(action).sqrt()),
+        smoothness: f64::from(-dt * w.smoothness * norm(&change)),
+        ..RewardTerms::default()
+    };
+    if crashed {
+        terms.crash = f64::from(-dt * w.crash);
+    } else {
+        terms.progress =
+            f64::from(dt * w.progress * ((before - gate).norm() - (after - gate).norm()));
+        if result.passed_gate().is_some() {
+            terms.pass = f64::from(dt * w.pass * (1.0 - (after - gate).norm()));
+            slot.stats.gates_passed += 1;
+        }
+    }
+    slot.previous_action = *action;
+    slot.steps += 1;
+    let timed_out = !crashed && slot.steps >= max_steps;
+    slot.stats.steps += 1;
+    slot.stats.crashes += u64::from(crashed);
+    slot.stats.timeouts += u64::from(timed_out);
+    slot.stats.terms.add(&terms);
+    (terms.total() as f32, crashed, timed_out)
+}
+
+fn observe(world: &World, spec: &ObservationSpec, slot: &Slot, out: &mut [f32]) {
+    let d = &slot.drones[0];
+    let gate = world.track.gate(d.progress.target);
+    match spec.observe(&d.body.state, &gate, &slot.previous_action, None) {
+        Ok(o) => out.copy_from_slice(o.as_slice()),
+        // Only a diverged state fails, and a diverged state is a crash that was respawned.
+        Err(_) => out.fill(0.0),
+    }
+}
