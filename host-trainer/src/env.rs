@@ -28,6 +28,7 @@ const CHUNK: usize = 128;
 
 /// The reward's weights (SPEC "Rewards"; defaults are the paper's).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct RewardWeights {
     /// λ₁, progress toward the target gate (per m). Paper 0.5.
     pub progress: f32,

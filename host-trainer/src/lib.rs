@@ -7,5 +7,6 @@
 //! "stage2" issues.
 #![deny(missing_docs)]
 
+pub mod config;
 pub mod env;
 pub mod export;

@@ -1,0 +1,211 @@
+//! Training configuration: one TOML file per run (`host-trainer/configs/*.toml`), every
+//! field with its unit and the paper's value beside ours. Unknown keys are errors, so a typo
+//! cannot silently fall back to a default.
+
+use crate::env::RewardWeights;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// A whole training run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainConfig {
+    /// Name, seed, budget and bookkeeping.
+    pub run: RunConfig,
+    /// The vectorised environment.
+    pub env: EnvSection,
+    /// PPO hyper-parameters.
+    pub ppo: PpoConfig,
+    /// Reward weights (SPEC "Rewards").
+    #[serde(default)]
+    pub reward: RewardWeights,
+}
+
+/// Name, seed, budget and bookkeeping of a run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunConfig {
+    /// Short name, recorded in the exported blob (at most 32 bytes).
+    pub name: String,
+    /// Table 1 row of the policy ("A" for stage 1).
+    pub row: char,
+    /// Seed of the environment and the network initialisation.
+    pub seed: u64,
+    /// PPO iterations (each: a rollout of `steps_per_env` per env, then the update).
+    pub iterations: u32,
+    /// Iterations between checkpoints.
+    pub checkpoint_every: u32,
+}
+
+/// The vectorised environment of a run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EnvSection {
+    /// Parallel envs. Paper: 8,192 (on a GPU).
+    pub num_envs: usize,
+    /// Dynamics preset: "paper", "nominal" or "realistic".
+    pub preset: String,
+    /// Spawn: "stage1" (the paper's fixed spawn) or "along-track".
+    pub spawn: String,
+    /// Episode length before a time-out (s). Paper stage 1: 15.
+    pub episode_s: f32,
+    /// Start envs at random points of their first episode (RSL-RL). Paper: true.
+    pub random_initial_episode_length: bool,
+}
+
+/// PPO hyper-parameters (SPEC "Learning"; defaults are RSL-RL's and the paper's).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PpoConfig {
+    /// Env-steps per env per iteration. Paper: 100.
+    pub steps_per_env: usize,
+    /// Passes over the rollout per iteration. Paper: 5.
+    pub epochs: usize,
+    /// Minibatches per epoch. Paper: 4.
+    pub minibatches: usize,
+    /// Surrogate and value clip. Paper: 0.2.
+    pub clip: f32,
+    /// Discount γ. Paper: 0.99.
+    pub gamma: f32,
+    /// GAE λ. Paper: 0.95.
+    pub lambda: f32,
+    /// Value-loss coefficient. Paper: 1.0.
+    pub value_coef: f32,
+    /// Entropy coefficient. Paper stage 1: 0.01.
+    pub entropy_coef: f32,
+    /// Initial learning rate. Paper stage 1: 1e-4.
+    pub learning_rate: f64,
+    /// KL target of the adaptive learning rate (`None`: fixed rate). Paper: 0.01.
+    pub desired_kl: Option<f64>,
+    /// Gradient norm clip. Paper: 1.0.
+    pub max_grad_norm: f32,
+    /// Initial action standard deviation. Paper: 1.0.
+    pub init_std: f32,
+}
+
+/// Why a configuration could not be used.
+#[derive(Debug)]
+pub enum ConfigError {
+    /// The file could not be read.
+    Read(std::io::Error),
+    /// The TOML does not parse or does not match the schema.
+    Parse(String),
+    /// A value is out of its range.
+    Invalid(String),
+}
+
+impl core::fmt::Display for ConfigError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::Read(e) => write!(f, "cannot read the config: {e}"),
+            Self::Parse(e) => write!(f, "the config does not parse: {e}"),
+            Self::Invalid(e) => write!(f, "the config is invalid: {e}"),
+        }
+    }
+}
+
+impl std::error::Error for ConfigError {}
+
+impl TrainConfig {
+    /// Reads and validates the TOML file at `path`.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(ConfigError::Read)?;
+        Self::parse(&text)
+    }
+
+    /// Parses and validates TOML text.
+    pub fn parse(text: &str) -> Result<Self, ConfigError> {
+        let c: Self = toml::from_str(text).map_err(|e| ConfigError::Parse(e.to_string()))?;
+        c.validate()?;
+        Ok(c)
+    }
+
+    fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |m: String| Err(ConfigError::Invalid(m));
+        if self.run.name.is_empty() || self.run.name.len() > 32 {
+            return bad("run.name must be 1 to 32 bytes".into());
+        }
+        if !('A'..='G').contains(&self.run.row) {
+            return bad(format!("run.row '{}' is not a Table 1 row A-G", self.run.row));
+        }
+        if self.run.iterations == 0 || self.run.checkpoint_every == 0 {
+            return bad("run.iterations and run.checkpoint_every must be positive".into());
+        }
+        if sitl::dynamics::Preset::by_name(&self.env.preset).is_none() {
+            return bad(format!("env.preset '{}' (paper, nominal, realistic)", self.env.preset));
+        }
+        if !matches!(self.env.spawn.as_str(), "stage1" | "along-track") {
+            return bad(format!("env.spawn '{}' (stage1, along-track)", self.env.spawn));
+        }
+        if self.env.num_envs == 0 || !(self.env.episode_s > 0.0) {
+            return bad("env.num_envs and env.episode_s must be positive".into());
+        }
+        let p = &self.ppo;
+        if p.steps_per_env == 0 || p.epochs == 0 || p.minibatches == 0 {
+            return bad("ppo.steps_per_env, epochs and minibatches must be positive".into());
+        }
+        if (self.env.num_envs * p.steps_per_env) % p.minibatches != 0 {
+            return bad(format!(
+                "the rollout ({} envs x {} steps) does not split into {} equal minibatches",
+                self.env.num_envs, p.steps_per_env, p.minibatches
+            ));
+        }
+        let unit = |v: f32| (0.0..=1.0).contains(&v);
+        if !(unit(p.gamma) && unit(p.lambda) && p.clip > 0.0 && p.learning_rate > 0.0) {
+            return bad("ppo.gamma and lambda must be in [0, 1], clip and learning_rate > 0".into());
+        }
+        if !(p.init_std > 0.0 && p.max_grad_norm > 0.0) {
+            return bad("ppo.init_std and max_grad_norm must be positive".into());
+        }
+        Ok(())
+    }
+
+    /// A stable 64-bit hash of the configuration (FNV-1a of its canonical TOML), recorded in
+    /// checkpoints and blobs: a resumed run refuses a changed config.
+    pub fn hash(&self) -> u64 {
+        let canonical = toml::to_string(self).unwrap_or_default();
+        canonical.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+            (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+        })
+    }
+
+    /// Samples per iteration (envs × steps per env).
+    pub fn samples_per_iteration(&self) -> usize {
+        self.env.num_envs * self.ppo.steps_per_env
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const STAGE1: &str = include_str!("../configs/stage1.toml");
+    const PAPER: &str = include_str!("../configs/stage1_paper.toml");
+
+    #[test]
+    fn shipped_configs_parse() {
+        let ours = TrainConfig::parse(STAGE1).unwrap();
+        let paper = TrainConfig::parse(PAPER).unwrap();
+        // The paper's settings stay reachable.
+        assert_eq!(paper.env.num_envs, 8192);
+        assert_eq!(paper.env.spawn, "stage1");
+        assert_eq!(paper.ppo.steps_per_env, 100);
+        assert_eq!((paper.ppo.epochs, paper.ppo.minibatches), (5, 4));
+        assert_eq!(paper.ppo.learning_rate, 1e-4);
+        assert_eq!(paper.ppo.entropy_coef, 0.01);
+        assert_eq!(paper.reward, RewardWeights::default());
+        assert_ne!(ours.hash(), paper.hash());
+        assert_eq!(ours.hash(), TrainConfig::parse(STAGE1).unwrap().hash());
+    }
+
+    #[test]
+    fn typos_and_bad_values_are_errors() {
+        let typo = STAGE1.replace("entropy_coef", "entropy_cof");
+        assert!(matches!(TrainConfig::parse(&typo), Err(ConfigError::Parse(_))));
+        let bad = STAGE1.replace("preset = \"paper\"", "preset = \"moon\"");
+        let e = TrainConfig::parse(&bad).unwrap_err().to_string();
+        assert!(e.contains("moon"), "{e}");
+        let bad = STAGE1.replace("gamma = 0.99", "gamma = 1.5");
+        assert!(matches!(TrainConfig::parse(&bad), Err(ConfigError::Invalid(_))));
+    }
+}
