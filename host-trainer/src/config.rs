@@ -126,25 +126,34 @@ impl TrainConfig {
             return bad("run.name must be 1 to 32 bytes".into());
         }
         if !('A'..='G').contains(&self.run.row) {
-            return bad(format!("run.row '{}' is not a Table 1 row A-G", self.run.row));
+            return bad(format!(
+                "run.row '{}' is not a Table 1 row A-G",
+                self.run.row
+            ));
         }
         if self.run.iterations == 0 || self.run.checkpoint_every == 0 {
             return bad("run.iterations and run.checkpoint_every must be positive".into());
         }
         if sitl::dynamics::Preset::by_name(&self.env.preset).is_none() {
-            return bad(format!("env.preset '{}' (paper, nominal, realistic)", self.env.preset));
+            return bad(format!(
+                "env.preset '{}' (paper, nominal, realistic)",
+                self.env.preset
+            ));
         }
         if !matches!(self.env.spawn.as_str(), "stage1" | "along-track") {
-            return bad(format!("env.spawn '{}' (stage1, along-track)", self.env.spawn));
+            return bad(format!(
+                "env.spawn '{}' (stage1, along-track)",
+                self.env.spawn
+            ));
         }
-        if self.env.num_envs == 0 || !(self.env.episode_s > 0.0) {
+        if self.env.num_envs == 0 || self.env.episode_s.is_nan() || self.env.episode_s <= 0.0 {
             return bad("env.num_envs and env.episode_s must be positive".into());
         }
         let p = &self.ppo;
         if p.steps_per_env == 0 || p.epochs == 0 || p.minibatches == 0 {
             return bad("ppo.steps_per_env, epochs and minibatches must be positive".into());
         }
-        if (self.env.num_envs * p.steps_per_env) % p.minibatches != 0 {
+        if !(self.env.num_envs * p.steps_per_env).is_multiple_of(p.minibatches) {
             return bad(format!(
                 "the rollout ({} envs x {} steps) does not split into {} equal minibatches",
                 self.env.num_envs, p.steps_per_env, p.minibatches
@@ -152,7 +161,9 @@ impl TrainConfig {
         }
         let unit = |v: f32| (0.0..=1.0).contains(&v);
         if !(unit(p.gamma) && unit(p.lambda) && p.clip > 0.0 && p.learning_rate > 0.0) {
-            return bad("ppo.gamma and lambda must be in [0, 1], clip and learning_rate > 0".into());
+            return bad(
+                "ppo.gamma and lambda must be in [0, 1], clip and learning_rate > 0".into(),
+            );
         }
         if !(p.init_std > 0.0 && p.max_grad_norm > 0.0) {
             return bad("ppo.init_std and max_grad_norm must be positive".into());
@@ -201,11 +212,17 @@ mod tests {
     #[test]
     fn typos_and_bad_values_are_errors() {
         let typo = STAGE1.replace("entropy_coef", "entropy_cof");
-        assert!(matches!(TrainConfig::parse(&typo), Err(ConfigError::Parse(_))));
+        assert!(matches!(
+            TrainConfig::parse(&typo),
+            Err(ConfigError::Parse(_))
+        ));
         let bad = STAGE1.replace("preset = \"paper\"", "preset = \"moon\"");
         let e = TrainConfig::parse(&bad).unwrap_err().to_string();
         assert!(e.contains("moon"), "{e}");
         let bad = STAGE1.replace("gamma = 0.99", "gamma = 1.5");
-        assert!(matches!(TrainConfig::parse(&bad), Err(ConfigError::Invalid(_))));
+        assert!(matches!(
+            TrainConfig::parse(&bad),
+            Err(ConfigError::Invalid(_))
+        ));
     }
 }

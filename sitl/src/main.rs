@@ -2,7 +2,8 @@
 //!
 //! - `sitl eval --ego <blob|baseline> [--opponent <blob|baseline>] [--preset paper]
 //!   [--episodes 20] [--seconds 45] [--seed 0] [--spawn stage1|stage2|along-track]
-//!   [--json out.json]`: the referee's Table-1 row over many seeded episodes, in-process.
+//!   [--json out.json] [--plot out.svg]`: the referee's Table-1 row over many seeded
+//!   episodes, in-process.
 //! - `sitl fly [--ego baseline] [--preset paper] [--seconds 45] [--cruise M_PER_S]`: one
 //!   time trial from the stage-1 spawn with every lap time printed.
 
@@ -70,6 +71,9 @@ struct EvalArgs {
     /// Also write the report as JSON to this file.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Also draw the first episode from above (paths and gates) as SVG to this file.
+    #[arg(long)]
+    plot: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -129,7 +133,27 @@ fn eval(args: EvalArgs) -> Result<(), String> {
         spawn: args.spawn,
     };
     let started = std::time::Instant::now();
-    let episodes = evaluate(&ego, opponent.as_ref(), &config, false);
+    let episodes = evaluate(&ego, opponent.as_ref(), &config, args.plot.is_some());
+    if let (Some(path), Some(first)) = (&args.plot, episodes.first()) {
+        let title = format!(
+            "{}{}, episode 0 ({} preset, seed {})",
+            ego.describe(),
+            opponent
+                .as_ref()
+                .map(|o| format!(" vs {}", o.describe()))
+                .unwrap_or_default(),
+            preset.name,
+            args.seed
+        );
+        let svg = sitl::plot::top_down(
+            &config.world(opponent.is_some()).track,
+            &first.trace,
+            &title,
+        );
+        write_atomically(path, svg.as_bytes())
+            .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+        eprintln!("wrote {}", path.display());
+    }
     let metrics: Vec<_> = episodes.into_iter().map(|e| e.metrics).collect();
     let report = Report::new(&ego, opponent.as_ref(), &config, &metrics);
     print!("{}", report.table());

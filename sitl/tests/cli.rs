@@ -24,8 +24,11 @@ fn temp(name: &str) -> std::path::PathBuf {
 #[test]
 fn eval_prints_the_row_and_writes_every_json_key() {
     let json = temp("race.json");
+    let plot = temp("race.svg");
     let (ok, out, err) = sitl(&[
         "eval",
+        "--plot",
+        plot.to_str().unwrap(),
         "--ego",
         "baseline:8:0.4",
         "--opponent",
@@ -68,6 +71,12 @@ fn eval_prints_the_row_and_writes_every_json_key() {
     assert_eq!(v["episodes"], 3);
     assert_eq!(v["sim_seconds"].as_f64().unwrap().round(), 60.0);
     assert!(v["success_rate_ci95"].is_array());
+    let svg = std::fs::read_to_string(&plot).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains(">g5<"), "{svg}");
+    assert!(
+        svg.matches("<polyline").count() >= 3,
+        "centreline, ego, opponent"
+    );
 }
 
 #[test]

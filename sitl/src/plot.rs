@@ -1,0 +1,300 @@
+//! Plots as standalone SVG (no dependencies): line charts for learning curves and the
+//! top-down view of a race with the gates (like the paper's Fig. 3).
+
+use crate::referee::Trace;
+use firmware_core::math::Vec3;
+use firmware_core::track::{Centerline, Track};
+use std::fmt::Write;
+
+/// One line of a chart.
+#[derive(Clone, Debug)]
+pub struct Series {
+    /// Legend label.
+    pub name: String,
+    /// Points (x, y); non-finite ones are skipped.
+    pub points: Vec<(f64, f64)>,
+}
+
+const COLORS: [&str; 6] = [
+    "#1f77b4", "#d62728", "#2ca02c", "#9467bd", "#ff7f0e", "#8c564b",
+];
+
+fn escape(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+/// A "nice" tick step (1, 2 or 5 × 10ⁿ) for about five ticks over `span`.
+fn tick_step(span: f64) -> f64 {
+    if !(span.is_finite() && span > 0.0) {
+        return 1.0;
+    }
+    let raw = span / 5.0;
+    let p = 10f64.powf(raw.log10().floor());
+    let m = raw / p;
+    p * if m < 1.5 {
+        1.0
+    } else if m < 3.5 {
+        2.0
+    } else if m < 7.5 {
+        5.0
+    } else {
+        10.0
+    }
+}
+
+/// A line chart of `series` in a 640 × 400 SVG with axes, ticks, labels and a legend.
+pub fn line_chart(title: &str, x_label: &str, y_label: &str, series: &[Series]) -> String {
+    let (w, h, l, r, t, b) = (640.0, 400.0, 70.0, 20.0, 40.0, 50.0);
+    let finite = series
+        .iter()
+        .flat_map(|s| s.points.iter())
+        .filter(|(x, y)| x.is_finite() && y.is_finite());
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for &(x, y) in finite {
+        x0 = x0.min(x);
+        x1 = x1.max(x);
+        y0 = y0.min(y);
+        y1 = y1.max(y);
+    }
+    if x0 > x1 {
+        (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+    }
+    if x1 - x0 < 1e-12 {
+        x1 = x0 + 1.0;
+    }
+    if y1 - y0 < 1e-12 {
+        y0 -= 0.5;
+        y1 += 0.5;
+    }
+    let sx = |x: f64| l + (x - x0) / (x1 - x0) * (w - l - r);
+    let sy = |y: f64| h - b - (y - y0) / (y1 - y0) * (h - t - b);
+    let mut svg = String::new();
+    let _ = write!(
+        svg,
+        r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="sans-serif" font-size="12">
+<rect width="100%" height="100%" fill="white"/>
+<text x="{}" y="22" text-anchor="middle" font-size="15">{}</text>
+<rect x="{l}" y="{t}" width="{}" height="{}" fill="none" stroke="#444"/>
+"##,
+        w / 2.0,
+        escape(title),
+        w - l - r,
+        h - t - b
+    );
+    let step = tick_step(x1 - x0);
+    let mut x = (x0 / step).ceil() * step;
+    while x <= x1 + 1e-9 * step {
+        let px = sx(x);
+        let _ = writeln!(
+            svg,
+            r##"<line x1="{px:.1}" y1="{}" x2="{px:.1}" y2="{t}" stroke="#eee"/><text x="{px:.1}" y="{}" text-anchor="middle">{}</text>"##,
+            h - b,
+            h - b + 16.0,
+            fmt_tick(x, step)
+        );
+        x += step;
+    }
+    let step = tick_step(y1 - y0);
+    let mut y = (y0 / step).ceil() * step;
+    while y <= y1 + 1e-9 * step {
+        let py = sy(y);
+        let _ = writeln!(
+            svg,
+            r##"<line x1="{l}" y1="{py:.1}" x2="{}" y2="{py:.1}" stroke="#eee"/><text x="{}" y="{:.1}" text-anchor="end">{}</text>"##,
+            w - r,
+            l - 6.0,
+            py + 4.0,
+            fmt_tick(y, step)
+        );
+        y += step;
+    }
+    let _ = writeln!(
+        svg,
+        r#"<text x="{}" y="{}" text-anchor="middle">{}</text><text transform="translate(16 {}) rotate(-90)" text-anchor="middle">{}</text>"#,
+        (l + w - r) / 2.0,
+        h - 12.0,
+        escape(x_label),
+        (t + h - b) / 2.0,
+        escape(y_label)
+    );
+    for (i, s) in series.iter().enumerate() {
+        let color = COLORS[i % COLORS.len()];
+        let pts: Vec<String> = s
+            .points
+            .iter()
+            .filter(|(x, y)| x.is_finite() && y.is_finite())
+            .map(|&(x, y)| format!("{:.1},{:.1}", sx(x), sy(y)))
+            .collect();
+        let _ = writeln!(
+            svg,
+            r#"<polyline points="{}" fill="none" stroke="{color}" stroke-width="1.5"/>"#,
+            pts.join(" ")
+        );
+        let ly = t + 16.0 + 16.0 * i as f64;
+        let _ = writeln!(
+            svg,
+            r#"<line x1="{}" y1="{ly}" x2="{}" y2="{ly}" stroke="{color}" stroke-width="2"/><text x="{}" y="{}">{}</text>"#,
+            l + 10.0,
+            l + 30.0,
+            l + 36.0,
+            ly + 4.0,
+            escape(&s.name)
+        );
+    }
+    svg + "</svg>\n"
+}
+
+fn fmt_tick(v: f64, step: f64) -> String {
+    let digits = if step >= 1.0 {
+        0
+    } else {
+        (-step.log10().floor()) as usize
+    };
+    format!("{v:.digits$}")
+}
+
+/// The top-down view (x right, y up, metres) of `trace`: the centreline, the gates as bars
+/// 1.6 m wide across their direction of travel with their index, the ego's path (blue) and
+/// the opponent's (magenta), broken at respawns.
+pub fn top_down(track: &Track<'_>, trace: &Trace, title: &str) -> String {
+    // Bounds: the gates and every finite point flown, with a 1.5 m margin.
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    let gates = track.gates().iter().map(|g| g.center_m);
+    for p in gates
+        .chain(trace.ego_m.iter().copied())
+        .chain(trace.opponent_m.iter().copied())
+        .filter(|p| p.is_finite())
+    {
+        x0 = x0.min(f64::from(p.x));
+        x1 = x1.max(f64::from(p.x));
+        y0 = y0.min(f64::from(p.y));
+        y1 = y1.max(f64::from(p.y));
+    }
+    if x0 > x1 {
+        (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
+    }
+    // Far excursions (a drone leaving the track) are clipped at 30 m around the origin.
+    let (x0, x1) = ((x0 - 1.5).max(-30.0), (x1 + 1.5).min(30.0));
+    let (y0, y1) = ((y0 - 1.5).max(-30.0), (y1 + 1.5).min(30.0));
+    let scale = 780.0 / (x1 - x0);
+    let (w, h) = ((x1 - x0) * scale, (y1 - y0) * scale + 50.0);
+    let px = |p: Vec3| {
+        (
+            (f64::from(p.x) - x0) * scale,
+            30.0 + (y1 - f64::from(p.y)) * scale,
+        )
+    };
+    let mut svg = String::new();
+    let _ = writeln!(
+        svg,
+        r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="sans-serif" font-size="12">
+<rect width="100%" height="100%" fill="white"/>
+<text x="{}" y="20" text-anchor="middle" font-size="15">{}</text>"##,
+        w / 2.0,
+        escape(title)
+    );
+    let line = Centerline::new(track);
+    let n = line.segments() * 64;
+    let pts: Vec<String> = (0..=n)
+        .map(|i| {
+            let (x, y) = px(line.point(i as f32 / 64.0));
+            format!("{x:.1},{y:.1}")
+        })
+        .collect();
+    let _ = writeln!(
+        svg,
+        r##"<polyline points="{}" fill="none" stroke="#bbb" stroke-dasharray="4 4"/>"##,
+        pts.join(" ")
+    );
+    for (k, g) in track.gates().iter().enumerate() {
+        let half = track.opening_half_size_m;
+        let side = g.frame.rotate(Vec3::Y);
+        let side = Vec3::new(side.x, side.y, 0.0);
+        let side = side.scale(half / side.norm().max(1e-6));
+        let ((ax, ay), (bx, by)) = (px(g.center_m - side), px(g.center_m + side));
+        let (cx, cy) = px(g.center_m + g.forward().scale(-1.2));
+        let _ = writeln!(
+            svg,
+            r##"<line x1="{ax:.1}" y1="{ay:.1}" x2="{bx:.1}" y2="{by:.1}" stroke="#222" stroke-width="4"/><text x="{cx:.1}" y="{cy:.1}" text-anchor="middle" fill="#222">g{k}</text>"##
+        );
+    }
+    for (path, color, name) in [
+        (&trace.ego_m, "#1f5fd6", "ego"),
+        (&trace.opponent_m, "#d61fb4", "opponent"),
+    ] {
+        if path.is_empty() {
+            continue;
+        }
+        let mut start = 0usize;
+        let mut cuts: Vec<usize> = trace.respawns.iter().map(|&k| k as usize).collect();
+        cuts.push(path.len());
+        for end in cuts {
+            let seg: Vec<String> = path
+                .get(start..end.min(path.len()))
+                .unwrap_or(&[])
+                .iter()
+                .filter(|p| p.is_finite())
+                .map(|&p| {
+                    let (x, y) = px(p);
+                    format!("{x:.1},{y:.1}")
+                })
+                .collect();
+            if seg.len() > 1 {
+                let _ = writeln!(
+                    svg,
+                    r#"<polyline points="{}" fill="none" stroke="{color}" stroke-width="1.5" opacity="0.8"><title>{name}</title></polyline>"#,
+                    seg.join(" ")
+                );
+            }
+            start = end;
+        }
+    }
+    let _ = writeln!(
+        svg,
+        r##"<text x="10" y="{}" fill="#1f5fd6">ego</text><text x="45" y="{}" fill="#d61fb4">opponent</text><text x="{}" y="{}" text-anchor="end" fill="#666">1 m = {scale:.1} px</text>"##,
+        h - 10.0,
+        h - 10.0,
+        w - 10.0,
+        h - 10.0
+    );
+    svg + "</svg>\n"
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ticks_are_round() {
+        assert_eq!(tick_step(10.0), 2.0);
+        assert_eq!(tick_step(1000.0), 200.0);
+        assert!((tick_step(0.3) - 0.05).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_chart_holds_every_series_and_survives_empty_and_nan_input() {
+        let s = line_chart(
+            "reward <per> iteration",
+            "iteration",
+            "mean reward",
+            &[
+                Series {
+                    name: "total".into(),
+                    points: vec![(0.0, 1.0), (1.0, f64::NAN), (2.0, 3.0)],
+                },
+                Series {
+                    name: "pass".into(),
+                    points: vec![],
+                },
+            ],
+        );
+        assert!(s.starts_with("<svg") && s.ends_with("</svg>\n"));
+        assert_eq!(s.matches("<polyline").count(), 2);
+        assert!(s.contains("reward &lt;per&gt; iteration"));
+        assert!(!s.contains("NaN"));
+        let empty = line_chart("t", "x", "y", &[]);
+        assert!(empty.contains("</svg>"));
+    }
+}
