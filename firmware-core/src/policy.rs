@@ -140,9 +140,9 @@ impl Architecture {
         n + input * out + out
     }
 
-    /// The (input, output) sizes of every parameter tensor in payload order, with a name
-    /// following RSL-RL (`memory_a.rnn.weight_ih_l0`, `actor.0.weight`, …). A bias entry has
-    /// input size 0. The LSTM bias is the sum `bias_ih + bias_hh`.
+    /// The shape of every parameter tensor in payload order (host-trainer's `rslrl` module
+    /// maps them to RSL-RL's names, `memory_a.rnn.weight_ih_l0`, `actor.0.weight`, …). A bias
+    /// entry has 0 columns. The LSTM bias is the sum `bias_ih + bias_hh`.
     pub fn tensors(&self) -> heapless::Vec<TensorShape, 32> {
         let mut out = heapless::Vec::new();
         let h = usize::from(self.lstm_hidden);

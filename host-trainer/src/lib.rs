@@ -10,3 +10,4 @@
 pub mod config;
 pub mod env;
 pub mod export;
+pub mod rslrl;
