@@ -1,10 +1,12 @@
 //! # host-trainer
 //!
 //! Turns the simulator into trained racing policies and the policies into flash blobs.
-//! Today it holds the export path every trainer will use ([`export`]): a flat list of f32
-//! weights in payload order, with its architecture, observation spec and provenance, written
-//! as a firmware-core blob. PPO and recurrent PPO on `burn` come with the "stage1" and
-//! "stage2" issues.
+//! Today it holds the vectorised training environment ([`env`](mod@env): sitl worlds in parallel, the
+//! SPEC reward term by term, firmware-core's observations), the run configuration
+//! ([`config`]), the export path every trainer will use ([`export`]: f32 weights in payload
+//! order written as a firmware-core blob), and the interchange with RSL-RL, the paper's own
+//! stack ([`rslrl`]). PPO and recurrent PPO on `burn` come with the "stage1" and "stage2"
+//! issues.
 #![deny(missing_docs)]
 
 pub mod config;
