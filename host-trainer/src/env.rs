@@ -201,7 +201,7 @@ impl TrainEnv {
             let mut slot = Slot {
                 drones: [Drone::default()],
                 previous_action: [0.0; ACTION_DIM],
-                steps,
+                steps: 0,
                 rng,
                 stats: EnvStats::default(),
             };

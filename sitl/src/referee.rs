@@ -137,9 +137,10 @@ pub struct Referee {
     steps: u32,
     metrics: EpisodeMetrics,
     lap_start_step: Option<u32>,
-    /// Absolute index of the centreline segment each drone flies (its target's segment,
-    /// counted on across laps).
-    segment: [u64; 2],
+    /// Absolute index of the centreline segment each drone flew at its last (re)spawn (the
+    /// segment ending at its target, offset by a lap); adding the gates it has passed since
+    /// gives the segment it flies now, counted on across laps.
+    spawn_segment: [u64; 2],
     lead: Lead,
 }
 
@@ -155,9 +156,14 @@ impl Referee {
             steps: 0,
             metrics: EpisodeMetrics::default(),
             lap_start_step: None,
-            segment: [0; 2],
+            spawn_segment: [0; 2],
             lead: Lead::Behind,
         }
+    }
+
+    /// The racing line progress is measured on.
+    pub fn centerline(&self) -> &Centerline {
+        &self.line
     }
 
     /// Elapsed simulated time (s).
@@ -165,10 +171,11 @@ impl Referee {
         self.steps as f32 * self.dt_s
     }
 
-    /// The drones were (re)spawned: progress restarts from their targets, the lap timer stops,
-    /// and the lead is taken as it stands (a spawn is not an overtake).
+    /// The drones were just (re)spawned (no gate passed yet): progress restarts from their
+    /// targets, the lap timer stops, and the lead is taken as it stands (a spawn is not an
+    /// overtake).
     pub fn restart(&mut self, drones: &[Drone]) {
-        for (seg, d) in self.segment.iter_mut().zip(drones) {
+        for (seg, d) in self.spawn_segment.iter_mut().zip(drones) {
             // The segment that ends at the target; offset by a lap so it never goes below 0.
             *seg = d.progress.target as u64 + self.segments - 1;
         }
@@ -185,7 +192,8 @@ impl Referee {
     /// Progress of drone `i` along the track (m): laps·length + arc length of the nearest
     /// point of the centreline segment it flies.
     pub fn progress_m(&self, drones: &[Drone], i: usize) -> Option<f32> {
-        let (d, seg) = (drones.get(i)?, *self.segment.get(i)?);
+        let d = drones.get(i)?;
+        let seg = self.spawn_segment.get(i)? + u64::from(d.progress.gates_passed);
         let k = (seg % self.segments) as usize;
         let s = self.line.nearest_on_segment(k, d.position_m());
         let laps = (seg / self.segments) as f32;
@@ -212,7 +220,6 @@ impl Referee {
         } else if let Some(gate) = ego.passed_gate() {
             self.metrics.gates_passed += 1;
             self.metrics.gates_encountered += 1;
-            self.segment[0] += 1;
             if gate == 0 {
                 if let Some(k0) = self.lap_start_step {
                     self.metrics
@@ -222,12 +229,8 @@ impl Referee {
                 self.lap_start_step = Some(self.steps);
             }
         }
-        if let Some(o) = opponent {
-            if o.crash.is_some() {
-                self.metrics.opponent_crashes += 1;
-            } else if o.passed_gate().is_some() {
-                self.segment[1] += 1;
-            }
+        if opponent.is_some_and(|o| o.crash.is_some()) {
+            self.metrics.opponent_crashes += 1;
         }
         let reset = ego.crash.is_some() || opponent.is_some_and(|o| o.crash.is_some());
         if reset {
@@ -401,8 +404,8 @@ fn run<const N: usize>(
     rng: &mut ChaCha8Rng,
     record: bool,
 ) -> Episode {
-    let line = Centerline::new(&world.track);
     let mut referee = Referee::new(&world.track, world.dt_s);
+    let line = *referee.centerline();
     let mut trace = Trace {
         dt_s: world.dt_s,
         ..Trace::default()
