@@ -35,6 +35,14 @@ pub struct RunConfig {
     pub iterations: u32,
     /// Iterations between checkpoints.
     pub checkpoint_every: u32,
+    /// Iterations between the referee's evaluations of the deterministic policy (logged as
+    /// `eval_*` in the metrics). Default 10.
+    #[serde(default = "default_eval_every")]
+    pub eval_every: u32,
+}
+
+fn default_eval_every() -> u32 {
+    10
 }
 
 /// The vectorised environment of a run.
@@ -131,8 +139,8 @@ impl TrainConfig {
                 self.run.row
             ));
         }
-        if self.run.iterations == 0 || self.run.checkpoint_every == 0 {
-            return bad("run.iterations and run.checkpoint_every must be positive".into());
+        if self.run.iterations == 0 || self.run.checkpoint_every == 0 || self.run.eval_every == 0 {
+            return bad("run.iterations, checkpoint_every and eval_every must be positive".into());
         }
         if sitl::dynamics::Preset::by_name(&self.env.preset).is_none() {
             return bad(format!(

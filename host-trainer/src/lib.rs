@@ -5,11 +5,15 @@
 //! SPEC reward term by term, firmware-core's observations), the run configuration
 //! ([`config`]), the export path every trainer will use ([`export`]: f32 weights in payload
 //! order written as a firmware-core blob), and the interchange with RSL-RL, the paper's own
-//! stack ([`rslrl`]). PPO and recurrent PPO on `burn` come with the "stage1" and "stage2"
-//! issues.
+//! stack ([`rslrl`]), the actor and critic on `burn` ([`model`]), PPO ([`ppo`]) and the
+//! training run with its checkpoints, metrics and export ([`train`]). Recurrent PPO comes
+//! with the "stage2" issue.
 #![deny(missing_docs)]
 
 pub mod config;
 pub mod env;
 pub mod export;
+pub mod model;
+pub mod ppo;
 pub mod rslrl;
+pub mod train;

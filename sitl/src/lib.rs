@@ -3,8 +3,8 @@
 //! The simulated world Overtake races in: cf2x quadrotor dynamics ([`dynamics`]), worlds of
 //! one or two drones on firmware-core's figure-8 with the crash rules ([`world`]), the pilots
 //! that fly them ([`pilot`]), the referee that scores 45 s episodes ([`referee`]), and
-//! evaluation over many seeded episodes with 95% intervals ([`eval`]), and SVG plots
-//! ([`plot`]).
+//! evaluation over many seeded episodes with 95% intervals ([`eval`]), SVG plots
+//! ([`plot`]) and atomic file writes ([`files`]).
 //!
 //! The track, the gate tests, the crash rules and the observation pipeline are
 //! firmware-core's: nothing here re-implements them.
@@ -12,6 +12,7 @@
 
 pub mod dynamics;
 pub mod eval;
+pub mod files;
 pub mod pilot;
 pub mod plot;
 pub mod referee;

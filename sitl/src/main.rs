@@ -150,7 +150,7 @@ fn eval(args: EvalArgs) -> Result<(), String> {
             &first.trace,
             &title,
         );
-        write_atomically(path, svg.as_bytes())
+        sitl::files::write_atomically(path, svg.as_bytes())
             .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
         eprintln!("wrote {}", path.display());
     }
@@ -164,7 +164,7 @@ fn eval(args: EvalArgs) -> Result<(), String> {
         started.elapsed().as_secs_f64()
     );
     if let Some(path) = args.json {
-        write_atomically(&path, report.to_json().as_bytes())
+        sitl::files::write_atomically(&path, report.to_json().as_bytes())
             .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
         eprintln!("wrote {}", path.display());
     }
@@ -173,13 +173,6 @@ fn eval(args: EvalArgs) -> Result<(), String> {
 
 /// Writes `bytes` to a temporary file beside `path` and renames it over `path`: a reader
 /// never sees half a file.
-fn write_atomically(path: &std::path::Path, bytes: &[u8]) -> std::io::Result<()> {
-    let mut tmp = path.as_os_str().to_owned();
-    tmp.push(".tmp");
-    std::fs::write(&tmp, bytes)?;
-    std::fs::rename(&tmp, path)
-}
-
 fn fly(args: FlyArgs) -> Result<(), String> {
     let preset = args.common.preset;
     let mut ego = PilotSpec::load(&args.ego, &preset).map_err(|e| format!("--ego: {e}"))?;

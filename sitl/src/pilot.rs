@@ -116,15 +116,20 @@ impl PilotSpec {
             path: path.to_path_buf(),
             source,
         })?;
-        let bytes = AlignedBytes::new(&raw);
-        Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).map_err(|e| {
-            PilotError::Blob {
-                path: path.to_path_buf(),
-                reason: e.to_string(),
-            }
-        })?;
+        Self::from_blob(what, &raw).map_err(|reason| PilotError::Blob {
+            path: path.to_path_buf(),
+            reason,
+        })
+    }
+
+    /// A learned policy from blob bytes held in memory (e.g. a trainer's latest export),
+    /// validated now; `name` labels it in reports.
+    pub fn from_blob(name: &str, raw: &[u8]) -> Result<Self, String> {
+        let bytes = AlignedBytes::new(raw);
+        Controller::from_bytes(bytes.as_bytes(), Track::figure_eight())
+            .map_err(|e| e.to_string())?;
         Ok(Self::Blob {
-            name: what.to_string(),
+            name: name.to_string(),
             bytes: Arc::new(bytes),
         })
     }

@@ -44,6 +44,24 @@ fn tick_step(span: f64) -> f64 {
     }
 }
 
+/// Charts of [`line_chart`] (640 × 400 each) laid out in a grid of `columns` columns, as
+/// one SVG.
+pub fn grid(charts: &[String], columns: usize) -> String {
+    let columns = columns.max(1);
+    let rows = charts.len().div_ceil(columns);
+    let (w, h) = (640 * columns, 400 * rows);
+    let mut out = format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" viewBox=\"0 0 {w} {h}\">\n"
+    );
+    for (i, chart) in charts.iter().enumerate() {
+        let (x, y) = (640 * (i % columns), 400 * (i / columns));
+        // A nested <svg> element takes its position from x and y.
+        out.push_str(&chart.replacen("<svg ", &format!("<svg x=\"{x}\" y=\"{y}\" "), 1));
+    }
+    out.push_str("</svg>\n");
+    out
+}
+
 /// A line chart of `series` in a 640 × 400 SVG with axes, ticks, labels and a legend.
 pub fn line_chart(title: &str, x_label: &str, y_label: &str, series: &[Series]) -> String {
     let (w, h, l, r, t, b) = (640.0, 400.0, 70.0, 20.0, 40.0, 50.0);

@@ -1,0 +1,205 @@
+//! `host-trainer`: train racing policies and export them as flash blobs.
+//!
+//! ```text
+//! cargo run --release -p host-trainer -- train --config host-trainer/configs/stage1.toml --out runs/stage1
+//! cargo run --release -p host-trainer -- train --config runs/stage1/config.toml --out runs/stage1 --resume
+//! cargo run --release -p host-trainer -- import-rslrl --safetensors actor.safetensors --row A --out a.blob
+//! ```
+
+use clap::{Parser, Subcommand, ValueEnum};
+use firmware_core::blob::Provenance;
+use firmware_core::policy::{Architecture, TableRow};
+use host_trainer::config::TrainConfig;
+use host_trainer::train::{RunOptions, run};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(
+    name = "host-trainer",
+    about = "Train Overtake racing policies and export them as blobs"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+/// Where the PPO update runs.
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum Backend {
+    /// burn's pure-Rust CPU backend (default).
+    Flex,
+    /// NVIDIA GPU (build with `--features cuda`).
+    Cuda,
+    /// Any GPU through wgpu (build with `--features wgpu`).
+    Wgpu,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Train a policy with PPO (a progress bar, metrics.jsonl, checkpoints, curves, a blob).
+    Train {
+        /// The run's TOML configuration (host-trainer/configs/*.toml).
+        #[arg(long)]
+        config: PathBuf,
+        /// Output directory (created; a directory holding a run needs --resume).
+        #[arg(long)]
+        out: PathBuf,
+        /// Continue the run in --out from its latest checkpoint.
+        #[arg(long)]
+        resume: bool,
+        /// Backend of the update.
+        #[arg(long, value_enum, default_value = "flex")]
+        device: Backend,
+        /// No progress bar; one line per referee evaluation instead.
+        #[arg(long)]
+        quiet: bool,
+        /// Stop after this many iterations of this invocation (a checkpoint is written).
+        #[arg(long)]
+        stop_after: Option<u32>,
+    },
+    /// Convert an RSL-RL actor (safetensors with RSL-RL's parameter names) into a blob.
+    ImportRslrl {
+        /// The safetensors file (e.g. converted from rsl_rl's model_*.pt state dict).
+        #[arg(long)]
+        safetensors: PathBuf,
+        /// Table 1 row of the actor (A-G).
+        #[arg(long)]
+        row: char,
+        /// The blob to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Name recorded in the blob's provenance.
+        #[arg(long, default_value = "rsl-rl import")]
+        name: String,
+    },
+}
+
+fn device(b: Backend) -> Result<burn::tensor::Device, String> {
+    match b {
+        Backend::Flex => Ok(burn::tensor::Device::flex().autodiff()),
+        #[cfg(feature = "cuda")]
+        Backend::Cuda => Ok(burn::tensor::Device::cuda(0).autodiff()),
+        #[cfg(feature = "wgpu")]
+        Backend::Wgpu => {
+            Ok(burn::tensor::Device::wgpu(burn::tensor::DeviceKind::DiscreteGpu(0)).autodiff())
+        }
+        #[allow(unreachable_patterns)]
+        other => Err(format!(
+            "--device {other:?}: this binary was built without that backend; rebuild with `--features {}`",
+            format!("{other:?}").to_lowercase()
+        )),
+    }
+}
+
+fn row(c: char) -> Option<TableRow> {
+    Some(match c.to_ascii_uppercase() {
+        'A' => TableRow::A,
+        'B' => TableRow::B,
+        'C' => TableRow::C,
+        'D' => TableRow::D,
+        'E' => TableRow::E,
+        'F' => TableRow::F,
+        'G' => TableRow::G,
+        _ => return None,
+    })
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Train {
+            config,
+            out,
+            resume,
+            device: backend,
+            quiet,
+            stop_after,
+        } => (|| -> Result<(), String> {
+            let cfg =
+                TrainConfig::load(&config).map_err(|e| format!("{}: {e}", config.display()))?;
+            let options = RunOptions {
+                out: out.clone(),
+                resume,
+                device: device(backend)?,
+                progress: !quiet,
+                stop_after,
+            };
+            println!(
+                "training '{}' (row {}, seed {}, {} envs x {} steps = {} samples per iteration, {} iterations, config hash {:016x}) into {}",
+                cfg.run.name,
+                cfg.run.row,
+                cfg.run.seed,
+                cfg.env.num_envs,
+                cfg.ppo.steps_per_env,
+                cfg.samples_per_iteration(),
+                cfg.run.iterations,
+                cfg.hash(),
+                out.display()
+            );
+            let s = run(&cfg, &options).map_err(|e| e.to_string())?;
+            let m = &s.last;
+            println!(
+                "{} iterations, {:.0} s of training ({:.1} min), {} samples",
+                s.iterations,
+                s.wall_s,
+                s.wall_s / 60.0,
+                m.samples
+            );
+            if let Some(sr) = m.eval_success_rate {
+                println!(
+                    "referee (45 s from the stage-1 spawn): success {:.3}, crashes {:.3} /s, best lap {}",
+                    sr,
+                    m.eval_crash_rate.unwrap_or(0.0),
+                    m.eval_best_lap_s
+                        .map_or("DNF".to_string(), |l| format!("{l:.2} s"))
+                );
+            }
+            match &s.blob {
+                Some(p) => println!("policy: {}", p.display()),
+                None => println!(
+                    "stopped before the budget; continue with --resume (checkpoint in {})",
+                    out.join("checkpoints").display()
+                ),
+            }
+            Ok(())
+        })(),
+        Command::ImportRslrl {
+            safetensors,
+            row: r,
+            out,
+            name,
+        } => (|| -> Result<(), String> {
+            let row = row(r).ok_or_else(|| format!("--row {r}: not a Table 1 row A-G"))?;
+            let arch = Architecture::table1(row);
+            let bytes = std::fs::read(&safetensors)
+                .map_err(|e| format!("{}: {e}", safetensors.display()))?;
+            let weights = host_trainer::rslrl::import_actor(&bytes, &arch)
+                .map_err(|e| format!("{}: {e}", safetensors.display()))?;
+            let mut provenance = Provenance::default();
+            provenance
+                .name
+                .push_str(&name)
+                .map_err(|_| "--name: at most 32 bytes".to_string())?;
+            let blob = host_trainer::export::export_blob(row, provenance, &weights)
+                .map_err(|e| format!("export: {e:?}"))?;
+            sitl::files::write_atomically(&out, &blob)
+                .map_err(|e| format!("{}: {e}", out.display()))?;
+            println!(
+                "{}: row {r} actor, {} weights -> {} ({} bytes)",
+                safetensors.display(),
+                weights.len(),
+                out.display(),
+                blob.len()
+            );
+            Ok(())
+        })(),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::FAILURE
+        }
+    }
+}

@@ -1,0 +1,514 @@
+//! PPO (SPEC "Learning", RSL-RL's `PPO`): a rollout buffer, generalised advantage
+//! estimation, and the clipped-surrogate update with a clipped value loss, an entropy bonus,
+//! the adaptive-KL learning rate, a global gradient-norm clip and Adam.
+//!
+//! **Actor and critic in parallel.** The actor and the critic are separate networks and the
+//! PPO loss is a sum of an actor part (surrogate, entropy) and a critic part (value loss), so
+//! each part's forward and backward pass runs on its own thread; the gradients are then
+//! clipped together by their global norm (PyTorch's `clip_grad_norm_` over all parameters, as
+//! RSL-RL does) and each network takes its Adam step. This is the same update as one joint
+//! backward pass: Adam is per parameter, and the two graphs share no node. `burn`'s flex
+//! matmuls at these sizes use one core, so this is what makes the second core work (measured
+//! in docs/PERFORMANCE.md).
+//!
+//! Departures from RSL-RL, each documented in docs/TRAINING.md: a fresh minibatch permutation
+//! every epoch (RSL-RL draws one per update), a log-parameterised σ (RSL-RL's default stores σ
+//! itself, which can go negative).
+
+use crate::model::{Actor, Critic, values};
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::{Device, Tensor, TensorData};
+use firmware_core::nn::ACTION_DIM;
+use rand::seq::SliceRandom;
+use rand_chacha::ChaCha8Rng;
+
+/// ln(2π).
+const LN_2PI: f32 = 1.837_877_1;
+
+/// The PPO settings an update needs (a view of `config::PpoConfig`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PpoParams {
+    /// Passes over the rollout.
+    pub epochs: usize,
+    /// Minibatches per pass.
+    pub minibatches: usize,
+    /// Surrogate and value clip.
+    pub clip: f32,
+    /// Discount.
+    pub gamma: f32,
+    /// GAE λ.
+    pub lambda: f32,
+    /// Value-loss coefficient.
+    pub value_coef: f32,
+    /// Entropy coefficient.
+    pub entropy_coef: f32,
+    /// KL target of the adaptive learning rate; `None` keeps the rate fixed.
+    pub desired_kl: Option<f64>,
+    /// Global gradient-norm clip.
+    pub max_grad_norm: f32,
+}
+
+/// One iteration's transitions, time-major (`[step][env]`).
+#[derive(Clone, Debug, Default)]
+pub struct Rollout {
+    /// Envs.
+    pub num_envs: usize,
+    /// Observation size.
+    pub obs_dim: usize,
+    /// Observations at the start of each step, `steps × envs × obs_dim`.
+    pub obs: Vec<f32>,
+    /// Actions taken (unclipped samples), `steps × envs × 4`.
+    pub actions: Vec<f32>,
+    /// Rewards.
+    pub rewards: Vec<f32>,
+    /// Episode ended in the step.
+    pub dones: Vec<bool>,
+    /// The end was a time-out (bootstrapped with γ·V).
+    pub timeouts: Vec<bool>,
+    /// Observations after the last step, `envs × obs_dim`.
+    pub last_obs: Vec<f32>,
+}
+
+impl Rollout {
+    /// An empty buffer for `num_envs` envs.
+    pub fn new(num_envs: usize, obs_dim: usize) -> Self {
+        Self {
+            num_envs,
+            obs_dim,
+            ..Self::default()
+        }
+    }
+
+    /// Steps recorded.
+    pub fn steps(&self) -> usize {
+        self.rewards.len() / self.num_envs.max(1)
+    }
+
+    /// Empties the buffer, keeping its allocations.
+    pub fn clear(&mut self) {
+        self.obs.clear();
+        self.actions.clear();
+        self.rewards.clear();
+        self.dones.clear();
+        self.timeouts.clear();
+        self.last_obs.clear();
+    }
+}
+
+/// The rollout turned into training samples: flat `[sample]` arrays.
+#[derive(Clone, Debug)]
+pub struct Batch {
+    /// Observation size.
+    pub obs_dim: usize,
+    /// Observations.
+    pub obs: Vec<f32>,
+    /// Actions.
+    pub actions: Vec<f32>,
+    /// log π_old(a|o).
+    pub old_log_prob: Vec<f32>,
+    /// μ_old(o), for the KL.
+    pub old_mean: Vec<f32>,
+    /// σ_old.
+    pub old_std: [f32; ACTION_DIM],
+    /// V_old(o).
+    pub old_values: Vec<f32>,
+    /// GAE returns (value targets).
+    pub returns: Vec<f32>,
+    /// Normalised advantages.
+    pub advantages: Vec<f32>,
+}
+
+impl Batch {
+    /// Samples.
+    pub fn len(&self) -> usize {
+        self.returns.len()
+    }
+
+    /// True when empty.
+    pub fn is_empty(&self) -> bool {
+        self.returns.is_empty()
+    }
+}
+
+/// log N(a; μ, σ) summed over the action dimensions.
+pub fn gaussian_log_prob(action: &[f32], mean: &[f32], std: &[f32; ACTION_DIM]) -> f32 {
+    action
+        .iter()
+        .zip(mean)
+        .zip(std)
+        .map(|((a, m), s)| {
+            let z = (a - m) / s;
+            -0.5 * z * z - s.ln() - 0.5 * LN_2PI
+        })
+        .sum()
+}
+
+/// GAE(γ, λ) over a time-major rollout: returns the value targets (`returns`); advantages are
+/// `returns − values`. `values` has `steps × envs` entries, `last_values` the bootstrap of
+/// the state after the last step; a done stops the recursion (rewards already carry the
+/// time-out bootstrap).
+pub fn gae(
+    rewards: &[f32],
+    dones: &[bool],
+    values: &[f32],
+    last_values: &[f32],
+    gamma: f32,
+    lambda: f32,
+) -> Vec<f32> {
+    let n = last_values.len();
+    let steps = rewards.len() / n.max(1);
+    let mut returns = vec![0.0; rewards.len()];
+    let mut advantage = vec![0.0f32; n];
+    for t in (0..steps).rev() {
+        for e in 0..n {
+            let i = t * n + e;
+            let next_value = if t + 1 == steps {
+                last_values[e]
+            } else {
+                values[i + n]
+            };
+            let live = if dones[i] { 0.0 } else { 1.0 };
+            let delta = rewards[i] + live * gamma * next_value - values[i];
+            advantage[e] = delta + live * gamma * lambda * advantage[e];
+            returns[i] = advantage[e] + values[i];
+        }
+    }
+    returns
+}
+
+/// A batch of rows as a `[n, width]` tensor.
+fn tensor2(data: Vec<f32>, width: usize, device: &Device) -> Tensor<2> {
+    let n = data.len() / width.max(1);
+    Tensor::from_data(TensorData::new(data, [n, width]), device)
+}
+
+/// Rows `idx` of a row-major `[_, width]` array.
+fn gather(src: &[f32], width: usize, idx: &[usize]) -> Vec<f32> {
+    let mut out = Vec::with_capacity(idx.len() * width);
+    for &i in idx {
+        out.extend_from_slice(&src[i * width..(i + 1) * width]);
+    }
+    out
+}
+
+/// Statistics of one update, averaged over its minibatches.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct UpdateStats {
+    /// Clipped surrogate loss.
+    pub surrogate_loss: f64,
+    /// Clipped value loss (before its coefficient).
+    pub value_loss: f64,
+    /// Policy entropy (nats).
+    pub entropy: f64,
+    /// KL(π_old ‖ π) measured before each step.
+    pub kl: f64,
+    /// Fraction of samples whose ratio left [1 − ε, 1 + ε].
+    pub clip_fraction: f64,
+    /// Global gradient norm before clipping.
+    pub grad_norm: f64,
+    /// Learning rate after the update.
+    pub learning_rate: f64,
+}
+
+/// Sums the squares of the gradients of a module's parameters.
+struct SquaredNorm<'a> {
+    grads: &'a GradientsParams,
+    sum: f64,
+}
+
+impl ModuleVisitor for SquaredNorm<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        if let Some(g) = self.grads.get::<D>(param.id) {
+            self.sum += f64::from(g.square().sum().into_scalar::<f32>());
+        }
+    }
+}
+
+/// Scales the gradients of a module's parameters.
+struct Scale<'a> {
+    grads: &'a mut GradientsParams,
+    factor: f32,
+}
+
+impl ModuleVisitor for Scale<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        if let Some(g) = self.grads.remove::<D>(param.id) {
+            self.grads.register(param.id, g.mul_scalar(self.factor));
+        }
+    }
+}
+
+fn squared_norm<M: Module>(module: &M, grads: &GradientsParams) -> f64 {
+    let mut v = SquaredNorm { grads, sum: 0.0 };
+    module.visit(&mut v);
+    v.sum
+}
+
+fn scale<M: Module>(module: &M, grads: &mut GradientsParams, factor: f32) {
+    let mut v = Scale { grads, factor };
+    module.visit(&mut v);
+}
+
+/// The learner: actor, critic, their Adam states and the adaptive learning rate.
+pub struct Learner {
+    /// The policy.
+    pub actor: Actor,
+    /// The value function.
+    pub critic: Critic,
+    /// Adam on the actor's parameters.
+    pub actor_optim: ModuleOptimizer,
+    /// Adam on the critic's parameters.
+    pub critic_optim: ModuleOptimizer,
+    /// Current learning rate.
+    pub learning_rate: f64,
+    /// The autodiff device.
+    pub device: Device,
+}
+
+/// Adam as PyTorch's defaults (β 0.9/0.999, ε 1e-8), which RSL-RL uses.
+pub fn adam() -> ModuleOptimizer {
+    AdamConfig::new().with_epsilon(1e-8).init()
+}
+
+/// What the actor's thread returns from one minibatch.
+struct ActorPass {
+    grads: GradientsParams,
+    surrogate: f64,
+    entropy: f64,
+    kl: f64,
+    clip_fraction: f64,
+}
+
+impl Learner {
+    /// A learner with fresh optimisers.
+    pub fn new(actor: Actor, critic: Critic, learning_rate: f64, device: Device) -> Self {
+        Self {
+            actor,
+            critic,
+            actor_optim: adam(),
+            critic_optim: adam(),
+            learning_rate,
+            device,
+        }
+    }
+
+    /// Turns a rollout into training samples: old log-probabilities, means and values from
+    /// one batched forward pass without autodiff, time-outs bootstrapped with γ·V of the
+    /// step's observation (RSL-RL), GAE returns, advantages normalised over the rollout.
+    pub fn prepare(&self, r: &Rollout, p: &PpoParams) -> Batch {
+        let actor = self.actor.valid();
+        let critic = self.critic.valid();
+        let device = self.device.clone().without_autodiff();
+        let obs_t = tensor2(r.obs.clone(), r.obs_dim, &device);
+        let old_mean = values(actor.mean(obs_t.clone()));
+        let old_values = values(critic.value(obs_t));
+        let last_values = values(critic.value(tensor2(r.last_obs.clone(), r.obs_dim, &device)));
+        let std = actor.std();
+        let old_std: [f32; ACTION_DIM] =
+            core::array::from_fn(|k| std.get(k).copied().unwrap_or(1.0));
+        let old_log_prob = r
+            .actions
+            .chunks_exact(ACTION_DIM)
+            .zip(old_mean.chunks_exact(ACTION_DIM))
+            .map(|(a, m)| gaussian_log_prob(a, m, &old_std))
+            .collect();
+        let rewards: Vec<f32> = r
+            .rewards
+            .iter()
+            .zip(&r.timeouts)
+            .zip(&old_values)
+            .map(|((&rw, &to), &v)| if to { rw + p.gamma * v } else { rw })
+            .collect();
+        let returns = gae(
+            &rewards,
+            &r.dones,
+            &old_values,
+            &last_values,
+            p.gamma,
+            p.lambda,
+        );
+        let mut advantages: Vec<f32> = returns
+            .iter()
+            .zip(&old_values)
+            .map(|(g, v)| g - v)
+            .collect();
+        let n = advantages.len().max(1) as f64;
+        let mean = advantages.iter().map(|&a| f64::from(a)).sum::<f64>() / n;
+        let var = advantages
+            .iter()
+            .map(|&a| (f64::from(a) - mean).powi(2))
+            .sum::<f64>()
+            / (n - 1.0).max(1.0);
+        let sd = var.sqrt() + 1e-8;
+        for a in &mut advantages {
+            *a = ((f64::from(*a) - mean) / sd) as f32;
+        }
+        Batch {
+            obs_dim: r.obs_dim,
+            obs: r.obs.clone(),
+            actions: r.actions.clone(),
+            old_log_prob,
+            old_mean,
+            old_std,
+            old_values,
+            returns,
+            advantages,
+        }
+    }
+
+    /// `epochs × minibatches` PPO steps on `batch`, minibatches drawn from `rng`.
+    pub fn update(&mut self, batch: &Batch, p: &PpoParams, rng: &mut ChaCha8Rng) -> UpdateStats {
+        let n = batch.len();
+        let size = n / p.minibatches.max(1);
+        let mut stats = UpdateStats::default();
+        let mut count = 0.0;
+        let mut order: Vec<usize> = (0..n).collect();
+        for _ in 0..p.epochs {
+            order.shuffle(rng);
+            for mb in order.chunks_exact(size.max(1)) {
+                let s = self.step(batch, mb, p);
+                stats.surrogate_loss += s.surrogate_loss;
+                stats.value_loss += s.value_loss;
+                stats.entropy += s.entropy;
+                stats.kl += s.kl;
+                stats.clip_fraction += s.clip_fraction;
+                stats.grad_norm += s.grad_norm;
+                count += 1.0;
+            }
+        }
+        if count > 0.0 {
+            stats.surrogate_loss /= count;
+            stats.value_loss /= count;
+            stats.entropy /= count;
+            stats.kl /= count;
+            stats.clip_fraction /= count;
+            stats.grad_norm /= count;
+        }
+        stats.learning_rate = self.learning_rate;
+        stats
+    }
+
+    /// One minibatch: actor and critic passes on two threads, the KL-adapted learning rate,
+    /// the global gradient clip, both Adam steps.
+    fn step(&mut self, b: &Batch, idx: &[usize], p: &PpoParams) -> UpdateStats {
+        let device = &self.device;
+        let d = b.obs_dim;
+        let pick = |v: &[f32]| -> Vec<f32> { idx.iter().map(|&i| v[i]).collect() };
+        let obs = gather(&b.obs, d, idx);
+        let (actor, critic) = (&self.actor, &self.critic);
+        let (actor_pass, (critic_grads, value_loss)) = std::thread::scope(|s| {
+            let obs_c = obs.clone();
+            let critic_job = s.spawn(move || {
+                let obs = tensor2(obs_c, d, device);
+                let old_v = tensor2(pick(&b.old_values), 1, device);
+                let ret = tensor2(pick(&b.returns), 1, device);
+                let v = critic.value(obs);
+                let v_clipped = old_v.clone() + (v.clone() - old_v).clamp(-p.clip, p.clip);
+                let loss_raw = (v - ret.clone())
+                    .square()
+                    .max_pair((v_clipped - ret).square())
+                    .mean();
+                let value_loss = f64::from(loss_raw.clone().into_scalar::<f32>());
+                let loss = loss_raw.mul_scalar(p.value_coef);
+                let grads = GradientsParams::from_grads(loss.backward(), critic);
+                (grads, value_loss)
+            });
+            let actor_pass = {
+                let obs = tensor2(obs, d, device);
+                let actions = tensor2(gather(&b.actions, ACTION_DIM, idx), ACTION_DIM, device);
+                let old_lp = tensor2(pick(&b.old_log_prob), 1, device);
+                let adv = tensor2(pick(&b.advantages), 1, device);
+                let mean = actor.mean(obs);
+                let log_std = actor.log_std.val();
+                // KL(π_old ‖ π) per sample, before the step (RSL-RL's adaptive schedule).
+                let mu = values(mean.clone().inner());
+                let std_now = actor.std();
+                let old_mu = gather(&b.old_mean, ACTION_DIM, idx);
+                let mut kl = 0.0f64;
+                for (m, om) in mu
+                    .chunks_exact(ACTION_DIM)
+                    .zip(old_mu.chunks_exact(ACTION_DIM))
+                {
+                    for k in 0..ACTION_DIM {
+                        let (s, so) = (f64::from(std_now[k]), f64::from(b.old_std[k]));
+                        let dm = f64::from(om[k] - m[k]);
+                        kl += (s / so).ln() + (so * so + dm * dm) / (2.0 * s * s) - 0.5;
+                    }
+                }
+                kl /= idx.len().max(1) as f64;
+                let inv_std = log_std.clone().neg().exp().unsqueeze::<2>();
+                let z = (actions - mean) * inv_std;
+                let log_prob = (z.square().sum_dim(1).mul_scalar(-0.5)
+                    - log_std.clone().sum().unsqueeze::<2>())
+                .sub_scalar(0.5 * LN_2PI * ACTION_DIM as f32);
+                let ratio = (log_prob - old_lp).exp();
+                let clipped = ratio.clone().clamp(1.0 - p.clip, 1.0 + p.clip);
+                let ratio_v = values(ratio.clone().inner());
+                let clip_fraction = ratio_v
+                    .iter()
+                    .filter(|r| (**r - 1.0).abs() > p.clip)
+                    .count() as f64
+                    / ratio_v.len().max(1) as f64;
+                let surrogate = (adv.clone().neg() * ratio)
+                    .max_pair(adv.neg() * clipped)
+                    .mean();
+                let entropy = log_std
+                    .sum()
+                    .add_scalar(0.5 * (1.0 + LN_2PI) * ACTION_DIM as f32);
+                let surrogate_v = f64::from(surrogate.clone().into_scalar::<f32>());
+                let entropy_v = f64::from(entropy.clone().into_scalar::<f32>());
+                let loss = surrogate - entropy.mul_scalar(p.entropy_coef);
+                ActorPass {
+                    grads: GradientsParams::from_grads(loss.backward(), actor),
+                    surrogate: surrogate_v,
+                    entropy: entropy_v,
+                    kl,
+                    clip_fraction,
+                }
+            };
+            let critic_out = critic_job
+                .join()
+                .unwrap_or_else(|e| std::panic::resume_unwind(e));
+            (actor_pass, critic_out)
+        });
+        let ActorPass {
+            grads: mut actor_grads,
+            surrogate,
+            entropy,
+            kl,
+            clip_fraction,
+        } = actor_pass;
+        let mut critic_grads = critic_grads;
+        if let Some(target) = p.desired_kl {
+            if kl > 2.0 * target {
+                self.learning_rate = (self.learning_rate / 1.5).max(1e-5);
+            } else if kl < target / 2.0 && kl > 0.0 {
+                self.learning_rate = (self.learning_rate * 1.5).min(1e-2);
+            }
+        }
+        let norm = (squared_norm(&self.actor, &actor_grads)
+            + squared_norm(&self.critic, &critic_grads))
+        .sqrt();
+        let max = f64::from(p.max_grad_norm);
+        if norm > max {
+            let factor = (max / (norm + 1e-6)) as f32;
+            scale(&self.actor, &mut actor_grads, factor);
+            scale(&self.critic, &mut critic_grads, factor);
+        }
+        let lr = self.learning_rate;
+        self.actor = self.actor_optim.step(lr, self.actor.clone(), actor_grads);
+        self.critic = self
+            .critic_optim
+            .step(lr, self.critic.clone(), critic_grads);
+        UpdateStats {
+            surrogate_loss: surrogate,
+            value_loss,
+            entropy,
+            kl,
+            clip_fraction,
+            grad_norm: norm,
+            learning_rate: lr,
+        }
+    }
+}

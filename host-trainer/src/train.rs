@@ -1,0 +1,812 @@
+//! The training run: rollouts in the vectorised environment, PPO updates, metrics,
+//! checkpoints, resume, learning curves and the export of the trained actor.
+//!
+//! **Rollouts fly the deployed network.** Every iteration the actor's weights are written in
+//! blob payload order and viewed by firmware-core's `Policy`, the code the flight controller
+//! runs; the rollout's Gaussian means come from it (in parallel over envs), the noise from one
+//! seeded generator. The update recomputes means and values with `burn` in one batched pass,
+//! so the ratio of the first minibatch is 1 up to the parity of the two implementations
+//! (< 1e-5, tested).
+//!
+//! **Output directory** (`--out`):
+//! - `config.toml`: the configuration the run used;
+//! - `metrics.jsonl`: one JSON object per iteration (reward terms, success, crashes, losses,
+//!   KL, learning rate, σ, speed) and, every `run.eval_every` iterations, the referee's
+//!   evaluation of the current policy (`eval_*` keys);
+//! - `checkpoints/iter_NNNNNN/` (networks and Adam states as burnpack files, `state.json`) and
+//!   `checkpoints/latest`, the name of the newest complete checkpoint, replaced atomically
+//!   after every file of the checkpoint is on disk: a kill at any moment leaves the previous
+//!   checkpoint usable, and `--resume` loses at most `run.checkpoint_every` iterations;
+//! - at the end: `<name>.blob` (firmware-core blob with provenance: run name, seed,
+//!   iterations, preset, config hash), `<name>.safetensors` (the actor with RSL-RL's names)
+//!   and `learning_curves.svg`.
+//!
+//! **Resume.** The networks, Adam states, learning rate, iteration, metrics and the
+//! generators of the action noise and of the minibatches are restored. The environments are
+//! not stored: a resumed run respawns them (with a seed derived from the iteration and random
+//! initial episode lengths), so its trajectory differs from an uninterrupted run's from that
+//! point, its learning state does not.
+
+use crate::config::TrainConfig;
+use crate::env::{EnvConfig, EnvStats, OBS_DIM, TrainEnv};
+use crate::model::{Actor, Critic, init_rng};
+use crate::ppo::{Learner, PpoParams, Rollout, UpdateStats, adam};
+use burn::module::Module;
+use burn::tensor::Device;
+use firmware_core::blob::Provenance;
+use firmware_core::nn::ACTION_DIM;
+use firmware_core::policy::{Architecture, Policy, TableRow};
+use indicatif::{ProgressBar, ProgressStyle};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use sitl::dynamics::Preset;
+use sitl::eval::{EvalConfig, Report, evaluate};
+use sitl::files::write_atomically;
+use sitl::pilot::PilotSpec;
+use sitl::referee::SpawnMode;
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Why a run stopped early.
+#[derive(Debug)]
+pub enum TrainError {
+    /// A file could not be read or written.
+    Io(PathBuf, std::io::Error),
+    /// The output directory holds a run and `--resume` was not given, or there is nothing
+    /// to resume.
+    OutDir(String),
+    /// A checkpoint could not be used.
+    Checkpoint(String),
+    /// The configuration cannot be trained by this trainer.
+    Unsupported(String),
+    /// The trained network could not be exported.
+    Export(String),
+}
+
+impl core::fmt::Display for TrainError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Self::Io(p, e) => write!(f, "{}: {e}", p.display()),
+            Self::OutDir(m) | Self::Checkpoint(m) | Self::Unsupported(m) | Self::Export(m) => {
+                f.write_str(m)
+            }
+        }
+    }
+}
+
+impl std::error::Error for TrainError {}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TrainError + '_ {
+    move |e| TrainError::Io(path.to_path_buf(), e)
+}
+
+/// How a run is started.
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    /// Output directory.
+    pub out: PathBuf,
+    /// Continue from `out/checkpoints/latest`.
+    pub resume: bool,
+    /// The autodiff device of the update.
+    pub device: Device,
+    /// Show a progress bar (off for tests and non-interactive logs).
+    pub progress: bool,
+    /// Stop after this many iterations of this invocation (tests of resume); `None` runs to
+    /// the configured budget.
+    pub stop_after: Option<u32>,
+}
+
+/// One line of `metrics.jsonl`.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct IterationMetrics {
+    /// Iteration (1-based).
+    pub iteration: u32,
+    /// Env-steps trained on so far.
+    pub samples: u64,
+    /// Wall-clock seconds of training so far (summed over resumed invocations).
+    pub wall_s: f64,
+    /// Samples per second of this iteration, rollout and update.
+    pub samples_per_s: f64,
+    /// Seconds of the rollout.
+    pub rollout_s: f64,
+    /// Seconds of the update.
+    pub update_s: f64,
+    /// Mean reward per env-step.
+    pub reward_per_step: f64,
+    /// Mean progress term per env-step.
+    pub reward_progress: f64,
+    /// Mean command term per env-step.
+    pub reward_command: f64,
+    /// Mean smoothness term per env-step.
+    pub reward_smoothness: f64,
+    /// Mean pass term per env-step.
+    pub reward_pass: f64,
+    /// Mean crash term per env-step.
+    pub reward_crash: f64,
+    /// Mean return of the episodes that ended recently (last 200).
+    pub episode_return: f64,
+    /// Mean length of those episodes (s).
+    pub episode_s: f64,
+    /// Gates passed / (passed + crashes) in the rollout (the noisy policy).
+    pub success_rate: f64,
+    /// Crashes per simulated second in the rollout.
+    pub crash_rate_per_s: f64,
+    /// Gates passed per simulated second in the rollout.
+    pub gates_per_s: f64,
+    /// Update statistics.
+    pub surrogate_loss: f64,
+    /// Value loss.
+    pub value_loss: f64,
+    /// Entropy.
+    pub entropy: f64,
+    /// Mean KL per minibatch.
+    pub kl: f64,
+    /// Clip fraction.
+    pub clip_fraction: f64,
+    /// Gradient norm before clipping.
+    pub grad_norm: f64,
+    /// Learning rate after the update.
+    pub learning_rate: f64,
+    /// Mean σ of the policy.
+    pub action_std: f64,
+    /// Referee, deterministic policy, 45 s from the stage-1 spawn: success rate.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub eval_success_rate: Option<f64>,
+    /// Referee: crashes per second.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub eval_crash_rate: Option<f64>,
+    /// Referee: best lap (s), `None` without a complete lap.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub eval_best_lap_s: Option<f64>,
+    /// Referee: gates passed in the 45 s.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub eval_gates: Option<u64>,
+}
+
+/// What `checkpoints/iter_N/state.json` holds besides the networks.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct CheckpointState {
+    iteration: u32,
+    samples: u64,
+    wall_s: f64,
+    learning_rate: f64,
+    config_hash: String,
+    noise_rng: String,
+    shuffle_rng: String,
+}
+
+/// The end of a run.
+#[derive(Clone, Debug)]
+pub struct RunSummary {
+    /// Iterations done in total.
+    pub iterations: u32,
+    /// Wall-clock seconds of training (all invocations).
+    pub wall_s: f64,
+    /// The exported blob, when the run reached its budget.
+    pub blob: Option<PathBuf>,
+    /// The last referee evaluation.
+    pub last: IterationMetrics,
+}
+
+fn rng_state(r: &ChaCha8Rng) -> String {
+    format!("{}:{}", r.get_stream(), r.get_word_pos())
+}
+
+fn restore_rng(seed: u64, s: &str) -> Option<ChaCha8Rng> {
+    let (stream, pos) = s.split_once(':')?;
+    let mut r = ChaCha8Rng::seed_from_u64(seed);
+    r.set_stream(stream.parse().ok()?);
+    r.set_word_pos(pos.parse().ok()?);
+    Some(r)
+}
+
+fn generator(seed: u64, stream: u64) -> ChaCha8Rng {
+    let mut r = ChaCha8Rng::seed_from_u64(seed);
+    r.set_stream(stream);
+    r
+}
+
+/// A standard normal sample (Box–Muller).
+fn normal(rng: &mut ChaCha8Rng) -> f32 {
+    let u1: f32 = rng.random_range(f32::EPSILON..1.0);
+    let u2: f32 = rng.random::<f32>();
+    (-2.0 * u1.ln()).sqrt() * (core::f32::consts::TAU * u2).cos()
+}
+
+/// The Table 1 row and architecture of a stage-1 config (feed-forward rows only here).
+fn architecture(config: &TrainConfig) -> Result<(TableRow, Architecture), TrainError> {
+    let row = match config.run.row {
+        'A' => TableRow::A,
+        r => {
+            return Err(TrainError::Unsupported(format!(
+                "run.row '{r}': this trainer trains the stage-1 row A; the multi-agent rows come with recurrent PPO (issue stage2)"
+            )));
+        }
+    };
+    Ok((row, Architecture::table1(row)))
+}
+
+fn env_config(config: &TrainConfig, seed: u64) -> Result<EnvConfig, TrainError> {
+    let preset = Preset::by_name(&config.env.preset)
+        .ok_or_else(|| TrainError::Unsupported(format!("preset '{}'", config.env.preset)))?;
+    let spawn = SpawnMode::by_name(&config.env.spawn)
+        .ok_or_else(|| TrainError::Unsupported(format!("spawn '{}'", config.env.spawn)))?;
+    Ok(EnvConfig {
+        num_envs: config.env.num_envs,
+        preset,
+        spawn,
+        episode_s: config.env.episode_s,
+        random_initial_episode_length: config.env.random_initial_episode_length,
+        reward: config.reward,
+        seed,
+    })
+}
+
+/// PPO settings of a config.
+pub fn ppo_params(config: &TrainConfig) -> PpoParams {
+    let p = &config.ppo;
+    PpoParams {
+        epochs: p.epochs,
+        minibatches: p.minibatches,
+        clip: p.clip,
+        gamma: p.gamma,
+        lambda: p.lambda,
+        value_coef: p.value_coef,
+        entropy_coef: p.entropy_coef,
+        desired_kl: p.desired_kl,
+        max_grad_norm: p.max_grad_norm,
+    }
+}
+
+/// The actor as a firmware-core blob with the run's provenance.
+pub fn actor_blob(
+    actor: &Actor,
+    config: &TrainConfig,
+    iterations: u32,
+) -> Result<Vec<u8>, TrainError> {
+    let (row, _) = architecture(config)?;
+    let mut name = heapless::String::new();
+    name.push_str(&config.run.name)
+        .map_err(|_| TrainError::Export("run.name longer than 32 bytes".into()))?;
+    let mut preset = heapless::String::new();
+    preset
+        .push_str(&config.env.preset)
+        .map_err(|_| TrainError::Export("preset name longer than 16 bytes".into()))?;
+    let provenance = Provenance {
+        name,
+        seed: config.run.seed,
+        iterations,
+        preset,
+        config_hash: config.hash(),
+    };
+    crate::export::export_blob(row, provenance, &actor.payload())
+        .map_err(|e| TrainError::Export(format!("blob export failed: {e:?}")))
+}
+
+/// The referee's verdict on the deterministic policy: one 45 s time trial from the stage-1
+/// spawn (the evaluation of issue "stage1"; the fixed spawn and the deterministic policy make
+/// every such episode identical, so one is enough).
+fn referee_eval(blob: &[u8], preset: Preset) -> Option<Report> {
+    let spec = PilotSpec::from_blob("training", blob).ok()?;
+    let config = EvalConfig {
+        preset,
+        episodes: 1,
+        seconds: 45.0,
+        seed: 0,
+        spawn: Some(SpawnMode::Stage1),
+    };
+    let episodes = evaluate(&spec, None, &config, false);
+    let metrics: Vec<_> = episodes.iter().map(|e| e.metrics.clone()).collect();
+    Some(Report::new(&spec, None, &config, &metrics))
+}
+
+struct Paths {
+    out: PathBuf,
+    checkpoints: PathBuf,
+    latest: PathBuf,
+    metrics: PathBuf,
+}
+
+impl Paths {
+    fn new(out: &Path) -> Self {
+        Self {
+            out: out.to_path_buf(),
+            checkpoints: out.join("checkpoints"),
+            latest: out.join("checkpoints").join("latest"),
+            metrics: out.join("metrics.jsonl"),
+        }
+    }
+}
+
+/// Everything that evolves during a run.
+struct RunState {
+    learner: Learner,
+    iteration: u32,
+    samples: u64,
+    wall_s: f64,
+    noise_rng: ChaCha8Rng,
+    shuffle_rng: ChaCha8Rng,
+    history: Vec<IterationMetrics>,
+}
+
+fn save_checkpoint(paths: &Paths, s: &RunState, config: &TrainConfig) -> Result<(), TrainError> {
+    let name = format!("iter_{:06}", s.iteration);
+    let dir = paths.checkpoints.join(&name);
+    if dir.exists() {
+        std::fs::remove_dir_all(&dir).map_err(io(&dir))?;
+    }
+    std::fs::create_dir_all(&dir).map_err(io(&dir))?;
+    let ck = |e: burn::store::RecordError| TrainError::Checkpoint(format!("{name}: {e:?}"));
+    s.learner
+        .actor
+        .clone()
+        .save_file(dir.join("actor.bpk"))
+        .map_err(ck)?;
+    s.learner
+        .critic
+        .clone()
+        .save_file(dir.join("critic.bpk"))
+        .map_err(ck)?;
+    s.learner
+        .actor_optim
+        .save(dir.join("actor_optim.bpk"))
+        .map_err(ck)?;
+    s.learner
+        .critic_optim
+        .save(dir.join("critic_optim.bpk"))
+        .map_err(ck)?;
+    let state = CheckpointState {
+        iteration: s.iteration,
+        samples: s.samples,
+        wall_s: s.wall_s,
+        learning_rate: s.learner.learning_rate,
+        config_hash: format!("{:016x}", config.hash()),
+        noise_rng: rng_state(&s.noise_rng),
+        shuffle_rng: rng_state(&s.shuffle_rng),
+    };
+    let json = serde_json::to_string_pretty(&state).unwrap_or_default();
+    write_atomically(&dir.join("state.json"), json.as_bytes()).map_err(io(&dir))?;
+    // The burnpack files are written by burn without fsync: sync the directory's files
+    // before the pointer names it.
+    for f in [
+        "actor.bpk",
+        "critic.bpk",
+        "actor_optim.bpk",
+        "critic_optim.bpk",
+    ] {
+        let p = dir.join(f);
+        std::fs::File::open(&p)
+            .and_then(|h| h.sync_all())
+            .map_err(io(&p))?;
+    }
+    write_atomically(&paths.latest, name.as_bytes()).map_err(io(&paths.latest))?;
+    // Keep the newest two checkpoints.
+    if let Ok(entries) = std::fs::read_dir(&paths.checkpoints) {
+        let mut dirs: Vec<String> = entries
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("iter_") && !n.ends_with(".tmp"))
+            .collect();
+        dirs.sort();
+        let keep = dirs.len().saturating_sub(2);
+        for old in &dirs[..keep] {
+            let _ = std::fs::remove_dir_all(paths.checkpoints.join(old));
+        }
+    }
+    Ok(())
+}
+
+fn load_checkpoint(
+    paths: &Paths,
+    config: &TrainConfig,
+    arch: &Architecture,
+    device: &Device,
+) -> Result<RunState, TrainError> {
+    let name = std::fs::read_to_string(&paths.latest).map_err(|_| {
+        TrainError::OutDir(format!(
+            "nothing to resume: {} does not exist",
+            paths.latest.display()
+        ))
+    })?;
+    let dir = paths.checkpoints.join(name.trim());
+    let bad = |m: String| TrainError::Checkpoint(format!("{}: {m}", dir.display()));
+    let state: CheckpointState =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("state.json")).map_err(io(&dir))?)
+            .map_err(|e| bad(format!("state.json: {e}")))?;
+    let hash = format!("{:016x}", config.hash());
+    if state.config_hash != hash {
+        return Err(bad(format!(
+            "written by a run with config hash {}, this config hashes to {hash}; resume with the run's own config.toml",
+            state.config_hash
+        )));
+    }
+    let seed = config.run.seed;
+    let mut rng = init_rng(seed);
+    let actor = Actor::new(arch, config.ppo.init_std, &mut rng, device)
+        .try_load_file(dir.join("actor.bpk"))
+        .map_err(|e| bad(format!("actor.bpk: {e:?}")))?;
+    let critic = Critic::new(arch, &mut rng, device)
+        .try_load_file(dir.join("critic.bpk"))
+        .map_err(|e| bad(format!("critic.bpk: {e:?}")))?;
+    let actor_optim = adam()
+        .load(dir.join("actor_optim.bpk"))
+        .map_err(|e| bad(format!("actor_optim.bpk: {e:?}")))?;
+    let critic_optim = adam()
+        .load(dir.join("critic_optim.bpk"))
+        .map_err(|e| bad(format!("critic_optim.bpk: {e:?}")))?;
+    let mut learner = Learner::new(actor, critic, state.learning_rate, device.clone());
+    learner.actor_optim = actor_optim;
+    learner.critic_optim = critic_optim;
+    let noise_rng = restore_rng(seed, &state.noise_rng).ok_or_else(|| bad("noise_rng".into()))?;
+    let shuffle_rng =
+        restore_rng(seed, &state.shuffle_rng).ok_or_else(|| bad("shuffle_rng".into()))?;
+    // The metrics up to the checkpoint; later lines belong to the lost interval.
+    let history: Vec<IterationMetrics> = std::fs::read_to_string(&paths.metrics)
+        .unwrap_or_default()
+        .lines()
+        .filter_map(|l| serde_json::from_str::<IterationMetrics>(l).ok())
+        .filter(|m| m.iteration <= state.iteration)
+        .collect();
+    Ok(RunState {
+        learner,
+        iteration: state.iteration,
+        samples: state.samples,
+        wall_s: state.wall_s,
+        noise_rng,
+        shuffle_rng,
+        history,
+    })
+}
+
+/// The actor of the latest checkpoint in `out` (for exporting a run that has not finished,
+/// or checking a resume).
+pub fn checkpoint_actor(
+    config: &TrainConfig,
+    out: &Path,
+    device: &Device,
+) -> Result<(u32, Actor), TrainError> {
+    let (_, arch) = architecture(config)?;
+    let state = load_checkpoint(&Paths::new(out), config, &arch, device)?;
+    Ok((state.iteration, state.learner.actor))
+}
+
+fn write_metrics(paths: &Paths, history: &[IterationMetrics]) -> Result<(), TrainError> {
+    let mut text = String::new();
+    for m in history {
+        text.push_str(&serde_json::to_string(m).unwrap_or_default());
+        text.push('\n');
+    }
+    write_atomically(&paths.metrics, text.as_bytes()).map_err(io(&paths.metrics))
+}
+
+fn append_metrics(paths: &Paths, m: &IterationMetrics) -> Result<(), TrainError> {
+    use std::io::Write;
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&paths.metrics)
+        .map_err(io(&paths.metrics))?;
+    let line = serde_json::to_string(m).unwrap_or_default();
+    writeln!(f, "{line}").map_err(io(&paths.metrics))
+}
+
+/// Learning curves of a run as one SVG (reward terms, success and crashes, referee laps,
+/// losses and σ), against iterations.
+pub fn learning_curves(name: &str, history: &[IterationMetrics]) -> String {
+    use sitl::plot::{Series, grid, line_chart};
+    let series = |label: &str, f: &dyn Fn(&IterationMetrics) -> Option<f64>| Series {
+        name: label.to_string(),
+        points: history
+            .iter()
+            .filter_map(|m| f(m).map(|y| (f64::from(m.iteration), y)))
+            .collect(),
+    };
+    let it = "iteration";
+    let charts = vec![
+        line_chart(
+            &format!("{name}: reward per env-step, by term"),
+            it,
+            "reward per step",
+            &[
+                series("total", &|m| Some(m.reward_per_step)),
+                series("progress", &|m| Some(m.reward_progress)),
+                series("pass", &|m| Some(m.reward_pass)),
+                series("crash", &|m| Some(m.reward_crash)),
+                series("command+smooth", &|m| {
+                    Some(m.reward_command + m.reward_smoothness)
+                }),
+            ],
+        ),
+        line_chart(
+            &format!("{name}: success rate"),
+            it,
+            "gates passed / encountered",
+            &[
+                series("rollout (noisy policy)", &|m| Some(m.success_rate)),
+                series("referee, 45 s from stage-1 spawn", &|m| m.eval_success_rate),
+            ],
+        ),
+        line_chart(
+            &format!("{name}: referee lap time and crash rate"),
+            it,
+            "best lap (s) / crashes per 10 s",
+            &[
+                series("best lap (s)", &|m| m.eval_best_lap_s),
+                series("referee crashes per 10 s", &|m| {
+                    m.eval_crash_rate.map(|c| 10.0 * c)
+                }),
+                series("rollout crashes per 10 s", &|m| {
+                    Some(10.0 * m.crash_rate_per_s)
+                }),
+            ],
+        ),
+        line_chart(
+            &format!("{name}: PPO"),
+            it,
+            "value",
+            &[
+                series("value loss", &|m| Some(m.value_loss)),
+                series("action σ", &|m| Some(m.action_std)),
+                series("KL ×100", &|m| Some(100.0 * m.kl)),
+                series("learning rate ×1000", &|m| Some(1000.0 * m.learning_rate)),
+            ],
+        ),
+    ];
+    grid(&charts, 2)
+}
+
+/// Runs (or resumes) the training run of `config` into `options.out`.
+pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, TrainError> {
+    let (_, arch) = architecture(config)?;
+    if usize::from(arch.obs_dim) != OBS_DIM {
+        return Err(TrainError::Unsupported(
+            "the stage-1 environment has 17 observations".into(),
+        ));
+    }
+    let paths = Paths::new(&options.out);
+    let device = options.device.clone();
+    let mut state = if options.resume {
+        load_checkpoint(&paths, config, &arch, &device)?
+    } else {
+        if paths.latest.exists() {
+            return Err(TrainError::OutDir(format!(
+                "{} already holds a run (checkpoints/latest); pass --resume to continue it or choose another --out",
+                paths.out.display()
+            )));
+        }
+        std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
+        let mut rng = init_rng(config.run.seed);
+        let actor = Actor::new(&arch, config.ppo.init_std, &mut rng, &device);
+        let critic = Critic::new(&arch, &mut rng, &device);
+        RunState {
+            learner: Learner::new(actor, critic, config.ppo.learning_rate, device.clone()),
+            iteration: 0,
+            samples: 0,
+            wall_s: 0.0,
+            noise_rng: generator(config.run.seed, u64::MAX - 1),
+            shuffle_rng: generator(config.run.seed, u64::MAX - 2),
+            history: Vec::new(),
+        }
+    };
+    let config_text = toml::to_string(config).unwrap_or_default();
+    write_atomically(&paths.out.join("config.toml"), config_text.as_bytes())
+        .map_err(io(&paths.out))?;
+    write_metrics(&paths, &state.history)?;
+
+    let preset = Preset::by_name(&config.env.preset).unwrap_or_else(Preset::paper);
+    let env_seed = config
+        .run
+        .seed
+        .wrapping_add(u64::from(state.iteration).wrapping_mul(0x9e37_79b9_7f4a_7c15));
+    let mut env = TrainEnv::new(env_config(config, env_seed)?);
+    let n = env.num_envs();
+    let steps = config.ppo.steps_per_env;
+    let params = ppo_params(config);
+    let dt = f64::from(env.max_episode_steps()).recip() * f64::from(config.env.episode_s);
+    let mut rollout = Rollout::new(n, OBS_DIM);
+    let mut episode_return = vec![0.0f64; n];
+    let mut episode_len = vec![0u32; n];
+    let mut finished: VecDeque<(f64, u32)> = VecDeque::with_capacity(200);
+    let total = config.run.iterations;
+    let stop_at = options
+        .stop_after
+        .map_or(total, |k| (state.iteration + k).min(total));
+
+    let bar = if options.progress {
+        let b = ProgressBar::new(u64::from(total));
+        b.set_style(
+            ProgressStyle::with_template(
+                "{spinner} [{elapsed_precise}] {wide_bar} {pos}/{len} it  {msg}",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        b.set_position(u64::from(state.iteration));
+        b
+    } else {
+        ProgressBar::hidden()
+    };
+    let eval_every = config.run.eval_every.max(1);
+
+    while state.iteration < stop_at {
+        let started = Instant::now();
+        // Rollout with the deployed network.
+        let payload = state.learner.actor.payload();
+        let std = state.learner.actor.std();
+        let policy = Policy::from_payload(&arch, &payload)
+            .map_err(|e| TrainError::Export(format!("actor does not load as a blob: {e}")))?;
+        let Policy::A(net) = policy else {
+            return Err(TrainError::Unsupported("row A only".into()));
+        };
+        rollout.clear();
+        let mut actions = vec![0.0f32; n * ACTION_DIM];
+        let mut noise = vec![0.0f32; n * ACTION_DIM];
+        for _ in 0..steps {
+            let obs = env.observations();
+            rollout.obs.extend_from_slice(obs);
+            for z in &mut noise {
+                *z = normal(&mut state.noise_rng);
+            }
+            actions
+                .par_chunks_mut(ACTION_DIM * 64)
+                .zip(obs.par_chunks(OBS_DIM * 64))
+                .zip(noise.par_chunks(ACTION_DIM * 64))
+                .for_each(|((a, o), z)| {
+                    for ((a, o), z) in a
+                        .chunks_exact_mut(ACTION_DIM)
+                        .zip(o.chunks_exact(OBS_DIM))
+                        .zip(z.chunks_exact(ACTION_DIM))
+                    {
+                        let Ok(o) = <&[f32; OBS_DIM]>::try_from(o) else {
+                            continue;
+                        };
+                        let mean = net.forward(o);
+                        for k in 0..ACTION_DIM {
+                            a[k] = mean[k] + std[k] * z[k];
+                        }
+                    }
+                });
+            rollout.actions.extend_from_slice(&actions);
+            env.step(&actions)
+                .map_err(|e| TrainError::Unsupported(e.to_string()))?;
+            rollout.rewards.extend_from_slice(env.rewards());
+            rollout.dones.extend_from_slice(env.dones());
+            rollout.timeouts.extend_from_slice(env.timeouts());
+            for e in 0..n {
+                episode_return[e] += f64::from(env.rewards()[e]);
+                episode_len[e] += 1;
+                if env.dones()[e] {
+                    if finished.len() == 200 {
+                        finished.pop_front();
+                    }
+                    finished.push_back((episode_return[e], episode_len[e]));
+                    episode_return[e] = 0.0;
+                    episode_len[e] = 0;
+                }
+            }
+        }
+        rollout.last_obs.extend_from_slice(env.observations());
+        let env_stats: EnvStats = env.take_stats();
+        let rollout_s = started.elapsed().as_secs_f64();
+
+        // Update.
+        let t_update = Instant::now();
+        let batch = state.learner.prepare(&rollout, &params);
+        let u: UpdateStats = state
+            .learner
+            .update(&batch, &params, &mut state.shuffle_rng);
+        let update_s = t_update.elapsed().as_secs_f64();
+
+        state.iteration += 1;
+        let batch_samples = (n * steps) as u64;
+        state.samples += batch_samples;
+        let iter_s = started.elapsed().as_secs_f64();
+        state.wall_s += iter_s;
+        let per_step = |v: f64| v / env_stats.steps.max(1) as f64;
+        let sim_s = env_stats.steps as f64 * dt;
+        let std_now = state.learner.actor.std();
+        let mut m = IterationMetrics {
+            iteration: state.iteration,
+            samples: state.samples,
+            wall_s: state.wall_s,
+            samples_per_s: batch_samples as f64 / iter_s,
+            rollout_s,
+            update_s,
+            reward_per_step: per_step(env_stats.terms.total()),
+            reward_progress: per_step(env_stats.terms.progress),
+            reward_command: per_step(env_stats.terms.command),
+            reward_smoothness: per_step(env_stats.terms.smoothness),
+            reward_pass: per_step(env_stats.terms.pass),
+            reward_crash: per_step(env_stats.terms.crash),
+            episode_return: finished.iter().map(|e| e.0).sum::<f64>()
+                / finished.len().max(1) as f64,
+            episode_s: finished.iter().map(|e| f64::from(e.1)).sum::<f64>() * dt
+                / finished.len().max(1) as f64,
+            success_rate: env_stats.success_rate(),
+            crash_rate_per_s: env_stats.crashes as f64 / sim_s.max(1e-9),
+            gates_per_s: env_stats.gates_passed as f64 / sim_s.max(1e-9),
+            surrogate_loss: u.surrogate_loss,
+            value_loss: u.value_loss,
+            entropy: u.entropy,
+            kl: u.kl,
+            clip_fraction: u.clip_fraction,
+            grad_norm: u.grad_norm,
+            learning_rate: u.learning_rate,
+            action_std: std_now.iter().map(|&s| f64::from(s)).sum::<f64>()
+                / std_now.len().max(1) as f64,
+            ..IterationMetrics::default()
+        };
+        if state.iteration % eval_every == 0 || state.iteration == total {
+            let blob = actor_blob(&state.learner.actor, config, state.iteration)?;
+            if let Some(r) = referee_eval(&blob, preset) {
+                m.eval_success_rate = Some(r.success_rate);
+                m.eval_crash_rate = Some(r.crash_rate);
+                m.eval_best_lap_s = r.best_lap_s;
+                m.eval_gates = Some(r.gates_passed);
+            }
+            let lap = m
+                .eval_best_lap_s
+                .map_or("DNF".to_string(), |l| format!("{l:.2} s"));
+            bar.println(format!(
+                "it {:>5}  {:>6.0} s  {:>7.0} samples/s  reward/step {:+.4}  rollout success {:.3}  referee: success {:.3}, crashes {:.3}/s, best lap {lap}",
+                m.iteration,
+                m.wall_s,
+                m.samples_per_s,
+                m.reward_per_step,
+                m.success_rate,
+                m.eval_success_rate.unwrap_or(0.0),
+                m.eval_crash_rate.unwrap_or(0.0),
+            ));
+            if !options.progress {
+                println!(
+                    "it {:>5}  {:>6.0} s  {:>7.0} samples/s  reward/step {:+.4}  rollout success {:.3}  referee: success {:.3}, crashes {:.3}/s, best lap {lap}",
+                    m.iteration,
+                    m.wall_s,
+                    m.samples_per_s,
+                    m.reward_per_step,
+                    m.success_rate,
+                    m.eval_success_rate.unwrap_or(0.0),
+                    m.eval_crash_rate.unwrap_or(0.0),
+                );
+            }
+        }
+        bar.set_position(u64::from(state.iteration));
+        bar.set_message(format!(
+            "{:.0} samples/s  reward/step {:+.4}  success {:.3}  σ {:.2}",
+            m.samples_per_s, m.reward_per_step, m.success_rate, m.action_std
+        ));
+        append_metrics(&paths, &m)?;
+        state.history.push(m);
+        if state.iteration % config.run.checkpoint_every == 0 || state.iteration == stop_at {
+            save_checkpoint(&paths, &state, config)?;
+        }
+    }
+    bar.finish_and_clear();
+
+    let curves = learning_curves(&config.run.name, &state.history);
+    let curves_path = paths.out.join("learning_curves.svg");
+    write_atomically(&curves_path, curves.as_bytes()).map_err(io(&curves_path))?;
+    let mut blob_path = None;
+    if state.iteration >= total {
+        let blob = actor_blob(&state.learner.actor, config, state.iteration)?;
+        let p = paths.out.join(format!("{}.blob", config.run.name));
+        write_atomically(&p, &blob).map_err(io(&p))?;
+        let st = crate::rslrl::export_actor(
+            &arch,
+            &state.learner.actor.payload(),
+            Some(&state.learner.actor.std()),
+        )
+        .map_err(|e| TrainError::Export(e.to_string()))?;
+        let sp = paths.out.join(format!("{}.safetensors", config.run.name));
+        write_atomically(&sp, &st).map_err(io(&sp))?;
+        blob_path = Some(p);
+    }
+    Ok(RunSummary {
+        iterations: state.iteration,
+        wall_s: state.wall_s,
+        blob: blob_path,
+        last: state.history.last().cloned().unwrap_or_default(),
+    })
+}

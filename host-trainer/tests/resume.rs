@@ -1,0 +1,102 @@
+//! Checkpoints and resume: a run stopped and resumed, even after a kill left a torn
+//! checkpoint and metrics past it, ends where an uninterrupted run's learning state is at the
+//! checkpoint; a directory holding a run is not overwritten; a changed config is refused.
+
+use burn::tensor::Device;
+use host_trainer::config::TrainConfig;
+use host_trainer::train::{IterationMetrics, RunOptions, checkpoint_actor, run};
+use std::path::{Path, PathBuf};
+
+const CONFIG: &str = include_str!("../configs/smoke.toml");
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("overtake-resume-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+fn options(out: &Path, resume: bool, stop_after: Option<u32>) -> RunOptions {
+    RunOptions {
+        out: out.to_path_buf(),
+        resume,
+        device: Device::flex().autodiff(),
+        progress: false,
+        stop_after,
+    }
+}
+
+fn metrics(out: &Path) -> Vec<IterationMetrics> {
+    std::fs::read_to_string(out.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
+#[test]
+fn a_killed_run_resumes_from_its_last_checkpoint() {
+    let config = TrainConfig::parse(CONFIG).unwrap();
+    assert_eq!(config.run.checkpoint_every, 2);
+    let device = Device::flex().autodiff();
+
+    // Uninterrupted to iteration 2 (a run of 4 stopped after 2 checkpoints at 2).
+    let a = tmp("a");
+    let s = run(&config, &options(&a, false, Some(2))).unwrap();
+    assert_eq!((s.iterations, s.blob.is_none()), (2, true));
+    let (it, actor_a) = checkpoint_actor(&config, &a, &device).unwrap();
+    assert_eq!(it, 2);
+
+    // Another run, "killed" during iteration 3's checkpoint: a torn directory, a metrics
+    // line past the checkpoint.
+    let b = tmp("b");
+    run(&config, &options(&b, false, Some(2))).unwrap();
+    let torn = b.join("checkpoints").join("iter_000003");
+    std::fs::create_dir_all(&torn).unwrap();
+    std::fs::write(torn.join("actor.bpk"), b"half a file").unwrap();
+    let mut lines = std::fs::read_to_string(b.join("metrics.jsonl")).unwrap();
+    lines.push_str("{\"iteration\":3}\n");
+    std::fs::write(b.join("metrics.jsonl"), lines).unwrap();
+
+    // Both runs are deterministic up to the checkpoint.
+    let (_, actor_b) = checkpoint_actor(&config, &b, &device).unwrap();
+    assert_eq!(actor_a.payload(), actor_b.payload());
+
+    // Starting over into a directory that holds a run is refused, nothing is touched.
+    let e = run(&config, &options(&b, false, None))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("--resume"), "{e}");
+
+    // Resume: from iteration 2 to the budget of 4, the torn iteration 3 redone.
+    let s = run(&config, &options(&b, true, None)).unwrap();
+    assert_eq!(s.iterations, 4);
+    let blob = s.blob.expect("a finished run exports its blob");
+    assert!(blob.exists());
+    assert!(b.join("smoke.safetensors").exists());
+    assert!(b.join("learning_curves.svg").exists());
+    let m = metrics(&b);
+    let its: Vec<u32> = m.iter().map(|m| m.iteration).collect();
+    assert_eq!(its, vec![1, 2, 3, 4]);
+    assert!(m[3].samples == 4 * config.samples_per_iteration() as u64);
+    assert!(
+        m[3].eval_success_rate.is_some(),
+        "the last iteration is evaluated"
+    );
+
+    // A changed config cannot resume this run.
+    let mut other = config.clone();
+    other.ppo.entropy_coef = 0.02;
+    other.run.iterations = 6;
+    let e = run(&other, &options(&b, true, None))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("config hash"), "{e}");
+    // Nothing to resume in an empty directory.
+    let e = run(&config, &options(&tmp("c"), true, None))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("nothing to resume"), "{e}");
+    for d in [a, b] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}
