@@ -16,7 +16,12 @@ fn bench(c: &mut Criterion) {
         spawn: SpawnMode::AlongTrack,
         episode_s: 15.0,
         random_initial_episode_length: true,
+        spawn_speed_mps: 0.0,
+        stage1_fraction: 0.0,
         reward: RewardWeights::default(),
+        observation: firmware_core::observation::ObservationSpec::paper(
+            firmware_core::observation::ObservationLayout::TimeTrial17,
+        ),
         seed: 0,
     });
     // Near-hover actions with a per-env differential, as an early policy flies.

@@ -19,6 +19,37 @@ pub struct TrainConfig {
     /// Reward weights (SPEC "Rewards").
     #[serde(default)]
     pub reward: RewardWeights,
+    /// Optional imitation warm start before PPO (not in the paper).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub warm_start: Option<WarmStart>,
+}
+
+/// Imitation of the classical baseline before PPO (DAgger): the actor's mean is regressed
+/// onto the baseline's actions on states that the mixture of teacher and student visits,
+/// then PPO runs with the critic trained alone for its first iterations. Not in the paper;
+/// see docs/TRAINING.md for why and what it changes.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WarmStart {
+    /// Cruise speed of the baseline teacher (m/s); it flies without a crash up to 10.
+    pub teacher_cruise_mps: f32,
+    /// DAgger rounds; the teacher's share of the executed actions falls linearly from 1 to
+    /// 0 over the first half.
+    pub rounds: u32,
+    /// Env-steps per env per round.
+    pub steps_per_env: usize,
+    /// Passes over the aggregated data per round.
+    pub epochs: usize,
+    /// Minibatch size of the regression.
+    pub minibatch: usize,
+    /// Most recent samples kept for the regression.
+    pub max_samples: usize,
+    /// Adam learning rate of the regression.
+    pub learning_rate: f64,
+    /// σ of the noise on the student's executed actions (state diversity).
+    pub student_noise_std: f32,
+    /// PPO iterations after the warm start that train the critic only.
+    pub critic_iterations: u32,
 }
 
 /// Name, seed, budget and bookkeeping of a run.
@@ -41,6 +72,10 @@ pub struct RunConfig {
     pub eval_every: u32,
 }
 
+fn default_velocity_scale() -> f32 {
+    3.0
+}
+
 fn default_eval_every() -> u32 {
     10
 }
@@ -59,6 +94,17 @@ pub struct EnvSection {
     pub episode_s: f32,
     /// Start envs at random points of their first episode (RSL-RL). Paper: true.
     pub random_initial_episode_length: bool,
+    /// Divisor of the body-frame velocity in the observation (m/s). Paper: 3 (saturating at
+    /// 3 m/s). Default 3. Recorded in the exported blob's observation spec.
+    #[serde(default = "default_velocity_scale")]
+    pub velocity_scale_mps: f32,
+    /// Highest initial speed along the spawn heading (m/s), drawn uniformly from [0, this].
+    /// Paper: 0 (at rest). Default 0.
+    #[serde(default)]
+    pub spawn_speed_mps: f32,
+    /// Share of respawns at the paper's stage-1 spawn whatever `spawn` is. Default 0.
+    #[serde(default)]
+    pub stage1_fraction: f32,
 }
 
 /// PPO hyper-parameters (SPEC "Learning"; defaults are RSL-RL's and the paper's).
@@ -89,6 +135,11 @@ pub struct PpoConfig {
     pub max_grad_norm: f32,
     /// Initial action standard deviation. Paper: 1.0.
     pub init_std: f32,
+    /// Start the actor's output bias at the preset's hover action (a ≈ 0.52 with `paper`)
+    /// instead of PyTorch's random initialisation, so the first rollouts hover rather than
+    /// fall. Paper: false. Default false.
+    #[serde(default)]
+    pub init_hover: bool,
 }
 
 /// Why a configuration could not be used.
@@ -153,6 +204,29 @@ impl TrainConfig {
                 "env.spawn '{}' (stage1, along-track)",
                 self.env.spawn
             ));
+        }
+        if !(self.env.velocity_scale_mps.is_finite() && self.env.velocity_scale_mps > 0.0) {
+            return bad("env.velocity_scale_mps must be positive".into());
+        }
+        if let Some(w) = &self.warm_start {
+            if w.rounds == 0 || w.steps_per_env == 0 || w.epochs == 0 || w.minibatch == 0 {
+                return bad(
+                    "warm_start.rounds, steps_per_env, epochs and minibatch must be positive"
+                        .into(),
+                );
+            }
+            if !(w.learning_rate > 0.0 && w.teacher_cruise_mps > 0.0 && w.student_noise_std >= 0.0)
+            {
+                return bad(
+                    "warm_start.learning_rate and teacher_cruise_mps must be positive".into(),
+                );
+            }
+        }
+        if !(0.0..=1.0).contains(&self.env.stage1_fraction) {
+            return bad("env.stage1_fraction must be in [0, 1]".into());
+        }
+        if !(0.0..=20.0).contains(&self.env.spawn_speed_mps) {
+            return bad("env.spawn_speed_mps must be in [0, 20]".into());
         }
         if self.env.num_envs == 0 || self.env.episode_s.is_nan() || self.env.episode_s <= 0.0 {
             return bad("env.num_envs and env.episode_s must be positive".into());

@@ -12,8 +12,9 @@
 //! - pass `1 − ‖p_t − g‖` when the step passed gate g;
 //! - crash `− 5` when the step crashed (gate frame, ground, bounds, non-finite).
 
+use firmware_core::baseline::BaselineController;
 use firmware_core::nn::ACTION_DIM;
-use firmware_core::observation::{ObservationLayout, ObservationSpec};
+use firmware_core::observation::ObservationSpec;
 use firmware_core::track::Centerline;
 use firmware_core::vehicle::ActionMap;
 use rand::{Rng, SeedableRng};
@@ -94,6 +95,14 @@ pub struct EnvConfig {
     pub preset: Preset,
     /// Where episodes start: the paper's fixed stage-1 spawn or along the track.
     pub spawn: SpawnMode,
+    /// Highest initial speed (m/s) of a spawn, along its heading, drawn uniformly from
+    /// [0, this]; 0 spawns at rest as every spawn of SPEC does. Not part of the paper: a
+    /// drone already moving toward its gate sees progress reward from its first step (see
+    /// docs/TRAINING.md).
+    pub spawn_speed_mps: f32,
+    /// Share of respawns at the paper's fixed stage-1 spawn (at rest) whatever `spawn` is:
+    /// the start the referee evaluates stage 1 from. 0 for `spawn` alone.
+    pub stage1_fraction: f32,
     /// Episode length (s) before a time-out. Paper stage 1: 15.
     pub episode_s: f32,
     /// Start every env at a random point of its first episode (RSL-RL's
@@ -101,6 +110,9 @@ pub struct EnvConfig {
     pub random_initial_episode_length: bool,
     /// Reward weights.
     pub reward: RewardWeights,
+    /// The observation spec (layout 17; the scales are recorded in exported blobs). Paper:
+    /// `ObservationSpec::paper(TimeTrial17)`.
+    pub observation: ObservationSpec,
     /// Seed of the spawns and initial lengths (env i uses stream i).
     pub seed: u64,
 }
@@ -180,7 +192,7 @@ impl TrainEnv {
         let mut env = Self {
             world,
             line,
-            spec: ObservationSpec::paper(ObservationLayout::TimeTrial17),
+            spec: config.observation,
             map: ActionMap::PAPER,
             max_steps,
             slots: Vec::with_capacity(n),
@@ -205,7 +217,13 @@ impl TrainEnv {
                 rng,
                 stats: EnvStats::default(),
             };
-            respawn(&env.world, &env.line, env.config.spawn, &mut slot);
+            respawn(
+                &env.world,
+                &env.line,
+                env.config.spawn,
+                (env.config.spawn_speed_mps, env.config.stage1_fraction),
+                &mut slot,
+            );
             slot.steps = steps;
             env.slots.push(slot);
         }
@@ -274,6 +292,7 @@ impl TrainEnv {
         );
         let line = &self.line;
         let spawn_mode = self.config.spawn;
+        let spawn_speed = (self.config.spawn_speed_mps, self.config.stage1_fraction);
         self.slots
             .par_chunks_mut(CHUNK)
             .zip(self.observations.par_chunks_mut(CHUNK * OBS_DIM))
@@ -294,7 +313,7 @@ impl TrainEnv {
                     let (r, crashed, timed_out) =
                         step_slot(world, map, reward, max_steps, slot, &a);
                     if crashed || timed_out {
-                        respawn(world, line, spawn_mode, slot);
+                        respawn(world, line, spawn_mode, spawn_speed, slot);
                     }
                     rew[i] = r;
                     done[i] = crashed || timed_out;
@@ -303,6 +322,27 @@ impl TrainEnv {
                 }
             });
         Ok(())
+    }
+
+    /// What `teacher` would command in every env now, as actions in [−1, 1] through the
+    /// inverse of the paper's action map (`num_envs × 4`, row-major): the labels of the
+    /// imitation warm start. The teacher flies to each env's current target gate.
+    pub fn teacher_actions(&self, teacher: &BaselineController<'static>, out: &mut [f32]) {
+        let map = self.map;
+        self.slots
+            .par_chunks(CHUNK)
+            .zip(out.par_chunks_mut(CHUNK * ACTION_DIM))
+            .for_each(|(slots, out)| {
+                for (slot, a) in slots.iter().zip(out.chunks_exact_mut(ACTION_DIM)) {
+                    let d = &slot.drones[0];
+                    let mut c = teacher.clone();
+                    c.reset(d.progress.target);
+                    let (cmd, _) = c.step(&d.body.state);
+                    for (a, rpm) in a.iter_mut().zip(cmd.rpm) {
+                        *a = ((rpm / map.hover_rpm - 1.0) / map.gain).clamp(-1.0, 1.0);
+                    }
+                }
+            });
     }
 
     /// The statistics since the last call, summed over envs, and reset.
@@ -337,9 +377,27 @@ impl core::fmt::Display for ActionShapeError {
 
 impl std::error::Error for ActionShapeError {}
 
-/// A new episode in `slot`: a spawn drawn from its generator, the previous action zeroed.
-fn respawn(world: &World, line: &Centerline, mode: SpawnMode, slot: &mut Slot) {
-    let [spawn, _] = mode.draw(&world.track, line, &mut slot.rng);
+/// A new episode in `slot`: a spawn drawn from its generator, the stage-1 spawn with
+/// probability `stage1_fraction`, otherwise `mode`'s, moving along its heading at a speed
+/// drawn from [0, `max_speed_mps`] when that is positive; the previous action zeroed.
+fn respawn(
+    world: &World,
+    line: &Centerline,
+    mode: SpawnMode,
+    (max_speed_mps, stage1_fraction): (f32, f32),
+    slot: &mut Slot,
+) {
+    let stage1 = stage1_fraction > 0.0 && slot.rng.random::<f32>() < stage1_fraction;
+    let mode = if stage1 { SpawnMode::Stage1 } else { mode };
+    let [mut spawn, _] = mode.draw(&world.track, line, &mut slot.rng);
+    if max_speed_mps > 0.0 && !stage1 {
+        let speed = slot.rng.random_range(0.0..max_speed_mps);
+        let forward = spawn
+            .state
+            .attitude
+            .rotate(firmware_core::math::Vec3::new(1.0, 0.0, 0.0));
+        spawn.state.velocity_mps = forward.scale(speed);
+    }
     slot.drones = [Drone::spawned(spawn)];
     slot.previous_action = [0.0; ACTION_DIM];
     slot.steps = 0;

@@ -13,6 +13,7 @@
 pub mod config;
 pub mod env;
 pub mod export;
+pub mod imitation;
 pub mod model;
 pub mod ppo;
 pub mod rslrl;

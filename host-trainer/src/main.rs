@@ -57,6 +57,23 @@ enum Command {
         /// Stop after this many iterations of this invocation (a checkpoint is written).
         #[arg(long)]
         stop_after: Option<u32>,
+        /// Start the actor from this row-A blob (fine-tuning) instead of a random
+        /// initialisation and the config's warm start.
+        #[arg(long)]
+        init_actor: Option<PathBuf>,
+    },
+    /// Export the actor of a run's latest checkpoint as a blob (a run still going, or
+    /// stopped before its budget).
+    Export {
+        /// The run's config (its `config.toml`).
+        #[arg(long)]
+        config: PathBuf,
+        /// The run's output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// The blob to write.
+        #[arg(long)]
+        blob: PathBuf,
     },
     /// Convert an RSL-RL actor (safetensors with RSL-RL's parameter names) into a blob.
     ImportRslrl {
@@ -115,6 +132,7 @@ fn main() -> ExitCode {
             device: backend,
             quiet,
             stop_after,
+            init_actor,
         } => (|| -> Result<(), String> {
             let cfg =
                 TrainConfig::load(&config).map_err(|e| format!("{}: {e}", config.display()))?;
@@ -124,6 +142,7 @@ fn main() -> ExitCode {
                 device: device(backend)?,
                 progress: !quiet,
                 stop_after,
+                init_actor,
             };
             println!(
                 "training '{}' (row {}, seed {}, {} envs x {} steps = {} samples per iteration, {} iterations, config hash {:016x}) into {}",
@@ -162,6 +181,24 @@ fn main() -> ExitCode {
                     out.join("checkpoints").display()
                 ),
             }
+            Ok(())
+        })(),
+        Command::Export { config, out, blob } => (|| -> Result<(), String> {
+            let cfg =
+                TrainConfig::load(&config).map_err(|e| format!("{}: {e}", config.display()))?;
+            let device = burn::tensor::Device::flex().autodiff();
+            let (iteration, actor) = host_trainer::train::checkpoint_actor(&cfg, &out, &device)
+                .map_err(|e| e.to_string())?;
+            let bytes = host_trainer::train::actor_blob(&actor, &cfg, iteration)
+                .map_err(|e| e.to_string())?;
+            sitl::files::write_atomically(&blob, &bytes)
+                .map_err(|e| format!("{}: {e}", blob.display()))?;
+            println!(
+                "{}: the actor of iteration {iteration} -> {} ({} bytes)",
+                out.display(),
+                blob.display(),
+                bytes.len()
+            );
             Ok(())
         })(),
         Command::ImportRslrl {

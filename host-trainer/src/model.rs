@@ -133,6 +133,19 @@ impl Actor {
         }
     }
 
+    /// The same actor with its output bias set to `action` on every motor: the mean action
+    /// of an all-zero hidden layer (e.g. the hover action, so that the first rollouts hover
+    /// instead of falling).
+    pub fn with_output_bias(mut self, action: f32) -> Self {
+        if let Some(last) = self.mlp.layers.last_mut() {
+            let n = last.weight.val().dims()[1];
+            let device = last.weight.val().device();
+            let b = Tensor::<1>::from_data(TensorData::new(vec![action; n], [n]), &device);
+            last.bias = Some(Param::from_tensor(b));
+        }
+        self
+    }
+
     /// The Gaussian mean for a batch of observations `[n, obs]`.
     pub fn mean(&self, obs: Tensor<2>) -> Tensor<2> {
         self.mlp.forward(obs)

@@ -264,6 +264,12 @@ pub struct Learner {
     pub learning_rate: f64,
     /// The autodiff device.
     pub device: Device,
+    /// Run the actor's and the critic's passes on two threads (default). Off, they run one
+    /// after the other: the same numbers, for measuring what the second thread brings.
+    pub parallel: bool,
+    /// Update the actor (default). Off, only the critic learns (the critic warm-up after an
+    /// imitation warm start) and the learning rate stays.
+    pub train_actor: bool,
 }
 
 /// Adam as PyTorch's defaults (β 0.9/0.999, ε 1e-8), which RSL-RL uses.
@@ -280,6 +286,94 @@ struct ActorPass {
     clip_fraction: f64,
 }
 
+/// The critic's clipped value loss on a minibatch and its gradients.
+fn critic_pass(
+    critic: &Critic,
+    b: &Batch,
+    idx: &[usize],
+    p: &PpoParams,
+    device: &Device,
+) -> (GradientsParams, f64) {
+    let pick = |v: &[f32]| -> Vec<f32> { idx.iter().map(|&i| v[i]).collect() };
+    let obs = tensor2(gather(&b.obs, b.obs_dim, idx), b.obs_dim, device);
+    let old_v = tensor2(pick(&b.old_values), 1, device);
+    let ret = tensor2(pick(&b.returns), 1, device);
+    let v = critic.value(obs);
+    let v_clipped = old_v.clone() + (v.clone() - old_v).clamp(-p.clip, p.clip);
+    let loss_raw = (v - ret.clone())
+        .square()
+        .max_pair((v_clipped - ret).square())
+        .mean();
+    let value_loss = f64::from(loss_raw.clone().into_scalar::<f32>());
+    let loss = loss_raw.mul_scalar(p.value_coef);
+    (
+        GradientsParams::from_grads(loss.backward(), critic),
+        value_loss,
+    )
+}
+
+/// The actor's clipped surrogate and entropy bonus on a minibatch, its gradients, and the
+/// KL(π_old ‖ π) before the step (RSL-RL's adaptive schedule measures it there).
+fn actor_pass(
+    actor: &Actor,
+    b: &Batch,
+    idx: &[usize],
+    p: &PpoParams,
+    device: &Device,
+) -> ActorPass {
+    let pick = |v: &[f32]| -> Vec<f32> { idx.iter().map(|&i| v[i]).collect() };
+    let obs = tensor2(gather(&b.obs, b.obs_dim, idx), b.obs_dim, device);
+    let actions = tensor2(gather(&b.actions, ACTION_DIM, idx), ACTION_DIM, device);
+    let old_lp = tensor2(pick(&b.old_log_prob), 1, device);
+    let adv = tensor2(pick(&b.advantages), 1, device);
+    let mean = actor.mean(obs);
+    let log_std = actor.log_std.val();
+    let mu = values(mean.clone().inner());
+    let std_now = actor.std();
+    let old_mu = gather(&b.old_mean, ACTION_DIM, idx);
+    let mut kl = 0.0f64;
+    for (m, om) in mu
+        .chunks_exact(ACTION_DIM)
+        .zip(old_mu.chunks_exact(ACTION_DIM))
+    {
+        for k in 0..ACTION_DIM {
+            let (s, so) = (f64::from(std_now[k]), f64::from(b.old_std[k]));
+            let dm = f64::from(om[k] - m[k]);
+            kl += (s / so).ln() + (so * so + dm * dm) / (2.0 * s * s) - 0.5;
+        }
+    }
+    kl /= idx.len().max(1) as f64;
+    let inv_std = log_std.clone().neg().exp().unsqueeze::<2>();
+    let z = (actions - mean) * inv_std;
+    let log_prob = (z.square().sum_dim(1).mul_scalar(-0.5)
+        - log_std.clone().sum().unsqueeze::<2>())
+    .sub_scalar(0.5 * LN_2PI * ACTION_DIM as f32);
+    let ratio = (log_prob - old_lp).exp();
+    let clipped = ratio.clone().clamp(1.0 - p.clip, 1.0 + p.clip);
+    let ratio_v = values(ratio.clone().inner());
+    let clip_fraction = ratio_v
+        .iter()
+        .filter(|r| (**r - 1.0).abs() > p.clip)
+        .count() as f64
+        / ratio_v.len().max(1) as f64;
+    let surrogate = (adv.clone().neg() * ratio)
+        .max_pair(adv.neg() * clipped)
+        .mean();
+    let entropy = log_std
+        .sum()
+        .add_scalar(0.5 * (1.0 + LN_2PI) * ACTION_DIM as f32);
+    let surrogate_v = f64::from(surrogate.clone().into_scalar::<f32>());
+    let entropy_v = f64::from(entropy.clone().into_scalar::<f32>());
+    let loss = surrogate - entropy.mul_scalar(p.entropy_coef);
+    ActorPass {
+        grads: GradientsParams::from_grads(loss.backward(), actor),
+        surrogate: surrogate_v,
+        entropy: entropy_v,
+        kl,
+        clip_fraction,
+    }
+}
+
 impl Learner {
     /// A learner with fresh optimisers.
     pub fn new(actor: Actor, critic: Critic, learning_rate: f64, device: Device) -> Self {
@@ -290,6 +384,8 @@ impl Learner {
             critic_optim: adam(),
             learning_rate,
             device,
+            parallel: true,
+            train_actor: true,
         }
     }
 
@@ -367,7 +463,7 @@ impl Learner {
         for _ in 0..p.epochs {
             order.shuffle(rng);
             for mb in order.chunks_exact(size.max(1)) {
-                let s = self.step(batch, mb, p);
+                let s = self.train_minibatch(batch, mb, p);
                 stats.surrogate_loss += s.surrogate_loss;
                 stats.value_loss += s.value_loss;
                 stats.entropy += s.entropy;
@@ -389,89 +485,43 @@ impl Learner {
         stats
     }
 
-    /// One minibatch: actor and critic passes on two threads, the KL-adapted learning rate,
-    /// the global gradient clip, both Adam steps.
-    fn step(&mut self, b: &Batch, idx: &[usize], p: &PpoParams) -> UpdateStats {
-        let device = &self.device;
-        let d = b.obs_dim;
-        let pick = |v: &[f32]| -> Vec<f32> { idx.iter().map(|&i| v[i]).collect() };
-        let obs = gather(&b.obs, d, idx);
-        let (actor, critic) = (&self.actor, &self.critic);
-        let (actor_pass, (critic_grads, value_loss)) = std::thread::scope(|s| {
-            let obs_c = obs.clone();
-            let critic_job = s.spawn(move || {
-                let obs = tensor2(obs_c, d, device);
-                let old_v = tensor2(pick(&b.old_values), 1, device);
-                let ret = tensor2(pick(&b.returns), 1, device);
-                let v = critic.value(obs);
-                let v_clipped = old_v.clone() + (v.clone() - old_v).clamp(-p.clip, p.clip);
-                let loss_raw = (v - ret.clone())
-                    .square()
-                    .max_pair((v_clipped - ret).square())
-                    .mean();
-                let value_loss = f64::from(loss_raw.clone().into_scalar::<f32>());
-                let loss = loss_raw.mul_scalar(p.value_coef);
-                let grads = GradientsParams::from_grads(loss.backward(), critic);
-                (grads, value_loss)
-            });
-            let actor_pass = {
-                let obs = tensor2(obs, d, device);
-                let actions = tensor2(gather(&b.actions, ACTION_DIM, idx), ACTION_DIM, device);
-                let old_lp = tensor2(pick(&b.old_log_prob), 1, device);
-                let adv = tensor2(pick(&b.advantages), 1, device);
-                let mean = actor.mean(obs);
-                let log_std = actor.log_std.val();
-                // KL(π_old ‖ π) per sample, before the step (RSL-RL's adaptive schedule).
-                let mu = values(mean.clone().inner());
-                let std_now = actor.std();
-                let old_mu = gather(&b.old_mean, ACTION_DIM, idx);
-                let mut kl = 0.0f64;
-                for (m, om) in mu
-                    .chunks_exact(ACTION_DIM)
-                    .zip(old_mu.chunks_exact(ACTION_DIM))
-                {
-                    for k in 0..ACTION_DIM {
-                        let (s, so) = (f64::from(std_now[k]), f64::from(b.old_std[k]));
-                        let dm = f64::from(om[k] - m[k]);
-                        kl += (s / so).ln() + (so * so + dm * dm) / (2.0 * s * s) - 0.5;
-                    }
-                }
-                kl /= idx.len().max(1) as f64;
-                let inv_std = log_std.clone().neg().exp().unsqueeze::<2>();
-                let z = (actions - mean) * inv_std;
-                let log_prob = (z.square().sum_dim(1).mul_scalar(-0.5)
-                    - log_std.clone().sum().unsqueeze::<2>())
-                .sub_scalar(0.5 * LN_2PI * ACTION_DIM as f32);
-                let ratio = (log_prob - old_lp).exp();
-                let clipped = ratio.clone().clamp(1.0 - p.clip, 1.0 + p.clip);
-                let ratio_v = values(ratio.clone().inner());
-                let clip_fraction = ratio_v
-                    .iter()
-                    .filter(|r| (**r - 1.0).abs() > p.clip)
-                    .count() as f64
-                    / ratio_v.len().max(1) as f64;
-                let surrogate = (adv.clone().neg() * ratio)
-                    .max_pair(adv.neg() * clipped)
-                    .mean();
-                let entropy = log_std
-                    .sum()
-                    .add_scalar(0.5 * (1.0 + LN_2PI) * ACTION_DIM as f32);
-                let surrogate_v = f64::from(surrogate.clone().into_scalar::<f32>());
-                let entropy_v = f64::from(entropy.clone().into_scalar::<f32>());
-                let loss = surrogate - entropy.mul_scalar(p.entropy_coef);
-                ActorPass {
-                    grads: GradientsParams::from_grads(loss.backward(), actor),
-                    surrogate: surrogate_v,
-                    entropy: entropy_v,
-                    kl,
-                    clip_fraction,
-                }
+    /// One minibatch: actor and critic passes (on two threads when `parallel`), the
+    /// KL-adapted learning rate, the global gradient clip, both Adam steps. `idx` are the
+    /// minibatch's sample indices into `b`.
+    pub fn train_minibatch(&mut self, b: &Batch, idx: &[usize], p: &PpoParams) -> UpdateStats {
+        let (actor, critic, device) = (&self.actor, &self.critic, &self.device);
+        if !self.train_actor {
+            let (mut grads, value_loss) = critic_pass(critic, b, idx, p, device);
+            let norm = squared_norm(critic, &grads).sqrt();
+            let max = f64::from(p.max_grad_norm);
+            if norm > max {
+                scale(critic, &mut grads, (max / (norm + 1e-6)) as f32);
+            }
+            self.critic = self
+                .critic_optim
+                .step(self.learning_rate, self.critic.clone(), grads);
+            return UpdateStats {
+                value_loss,
+                grad_norm: norm,
+                learning_rate: self.learning_rate,
+                ..UpdateStats::default()
             };
-            let critic_out = critic_job
-                .join()
-                .unwrap_or_else(|e| std::panic::resume_unwind(e));
-            (actor_pass, critic_out)
-        });
+        }
+        let (actor_pass, (critic_grads, value_loss)) = if self.parallel {
+            std::thread::scope(|s| {
+                let critic_job = s.spawn(|| critic_pass(critic, b, idx, p, device));
+                let a = actor_pass(actor, b, idx, p, device);
+                let c = critic_job
+                    .join()
+                    .unwrap_or_else(|e| std::panic::resume_unwind(e));
+                (a, c)
+            })
+        } else {
+            (
+                actor_pass(actor, b, idx, p, device),
+                critic_pass(critic, b, idx, p, device),
+            )
+        };
         let ActorPass {
             grads: mut actor_grads,
             surrogate,

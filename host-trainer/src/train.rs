@@ -33,8 +33,9 @@ use crate::model::{Actor, Critic, init_rng};
 use crate::ppo::{Learner, PpoParams, Rollout, UpdateStats, adam};
 use burn::module::Module;
 use burn::tensor::Device;
-use firmware_core::blob::Provenance;
+use firmware_core::blob::{BlobHeader, Provenance, encode};
 use firmware_core::nn::ACTION_DIM;
+use firmware_core::observation::{ObservationLayout, ObservationSpec};
 use firmware_core::policy::{Architecture, Policy, TableRow};
 use indicatif::{ProgressBar, ProgressStyle};
 use rand::{Rng, SeedableRng};
@@ -97,6 +98,10 @@ pub struct RunOptions {
     /// Stop after this many iterations of this invocation (tests of resume); `None` runs to
     /// the configured budget.
     pub stop_after: Option<u32>,
+    /// Start a fresh run's actor from this blob's weights (σ from the config) instead of a
+    /// random initialisation and the warm start: fine-tuning a policy, e.g. one imported from
+    /// RSL-RL. Ignored on resume.
+    pub init_actor: Option<PathBuf>,
 }
 
 /// One line of `metrics.jsonl`.
@@ -210,7 +215,7 @@ fn generator(seed: u64, stream: u64) -> ChaCha8Rng {
 }
 
 /// A standard normal sample (Box–Muller).
-fn normal(rng: &mut ChaCha8Rng) -> f32 {
+pub fn normal(rng: &mut ChaCha8Rng) -> f32 {
     let u1: f32 = rng.random_range(f32::EPSILON..1.0);
     let u2: f32 = rng.random::<f32>();
     (-2.0 * u1.ln()).sqrt() * (core::f32::consts::TAU * u2).cos()
@@ -229,7 +234,8 @@ fn architecture(config: &TrainConfig) -> Result<(TableRow, Architecture), TrainE
     Ok((row, Architecture::table1(row)))
 }
 
-fn env_config(config: &TrainConfig, seed: u64) -> Result<EnvConfig, TrainError> {
+/// The training environment of a config, seeded with `seed`.
+pub fn env_config(config: &TrainConfig, seed: u64) -> Result<EnvConfig, TrainError> {
     let preset = Preset::by_name(&config.env.preset)
         .ok_or_else(|| TrainError::Unsupported(format!("preset '{}'", config.env.preset)))?;
     let spawn = SpawnMode::by_name(&config.env.spawn)
@@ -240,9 +246,26 @@ fn env_config(config: &TrainConfig, seed: u64) -> Result<EnvConfig, TrainError> 
         spawn,
         episode_s: config.env.episode_s,
         random_initial_episode_length: config.env.random_initial_episode_length,
+        spawn_speed_mps: config.env.spawn_speed_mps,
+        stage1_fraction: config.env.stage1_fraction,
         reward: config.reward,
+        observation: observation_spec(config),
         seed,
     })
+}
+
+/// The action that holds hover with the config's preset and the paper's action map.
+pub fn hover_action(config: &TrainConfig) -> f32 {
+    let preset = Preset::by_name(&config.env.preset).unwrap_or_else(Preset::paper);
+    let map = firmware_core::vehicle::ActionMap::PAPER;
+    (preset.hover_rpm() / map.hover_rpm - 1.0) / map.gain
+}
+
+/// The observation spec of a config: the paper's 17 with the configured velocity scale.
+pub fn observation_spec(config: &TrainConfig) -> ObservationSpec {
+    let mut spec = ObservationSpec::paper(ObservationLayout::TimeTrial17);
+    spec.velocity_scale_mps = config.env.velocity_scale_mps;
+    spec
 }
 
 /// PPO settings of a config.
@@ -282,7 +305,9 @@ pub fn actor_blob(
         preset,
         config_hash: config.hash(),
     };
-    crate::export::export_blob(row, provenance, &actor.payload())
+    let mut header = BlobHeader::paper(row, provenance);
+    header.observation = observation_spec(config);
+    encode(&header, &actor.payload())
         .map_err(|e| TrainError::Export(format!("blob export failed: {e:?}")))
 }
 
@@ -473,6 +498,11 @@ pub fn checkpoint_actor(
     Ok((state.iteration, state.learner.actor))
 }
 
+fn write_curves(paths: &Paths, name: &str, history: &[IterationMetrics]) -> Result<(), TrainError> {
+    let p = paths.out.join("learning_curves.svg");
+    write_atomically(&p, learning_curves(name, history).as_bytes()).map_err(io(&p))
+}
+
 fn write_metrics(paths: &Paths, history: &[IterationMetrics]) -> Result<(), TrainError> {
     let mut text = String::new();
     for m in history {
@@ -558,6 +588,110 @@ pub fn learning_curves(name: &str, history: &[IterationMetrics]) -> String {
     grid(&charts, 2)
 }
 
+/// An actor holding the weights of the blob at `path`, which must be a row-A blob with the
+/// config's observation spec; σ is the config's `init_std`.
+fn actor_from_blob(
+    path: &Path,
+    arch: &Architecture,
+    config: &TrainConfig,
+    device: &Device,
+) -> Result<Actor, TrainError> {
+    let raw = std::fs::read(path).map_err(io(path))?;
+    let bytes = firmware_core::blob::AlignedBytes::new(&raw);
+    let blob = firmware_core::blob::Blob::parse(bytes.as_bytes())
+        .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", path.display())))?;
+    if blob.header().architecture != *arch {
+        return Err(TrainError::Checkpoint(format!(
+            "{}: not a row-{} blob",
+            path.display(),
+            config.run.row
+        )));
+    }
+    if blob.header().observation != observation_spec(config) {
+        return Err(TrainError::Checkpoint(format!(
+            "{}: its observation spec differs from the config's (env.velocity_scale_mps?)",
+            path.display()
+        )));
+    }
+    let std = vec![config.ppo.init_std; usize::from(arch.action_dim)];
+    Actor::from_payload(arch, blob.weights(), &std, device)
+        .ok_or_else(|| TrainError::Checkpoint(format!("{}: weights do not fit", path.display())))
+}
+
+/// The imitation warm start of a fresh run: the student replaces the initial actor (its σ
+/// kept), the rounds go to `imitation.jsonl`, and a checkpoint at iteration 0 keeps a resume
+/// from redoing it.
+fn warm_start(
+    state: &mut RunState,
+    arch: &Architecture,
+    config: &TrainConfig,
+    warm: &crate::config::WarmStart,
+    paths: &Paths,
+    device: &Device,
+    progress: bool,
+) -> Result<(), TrainError> {
+    let started = Instant::now();
+    println!(
+        "imitation warm start: {} DAgger rounds of the baseline at {} m/s",
+        warm.rounds, warm.teacher_cruise_mps
+    );
+    let bar = if progress {
+        ProgressBar::new(u64::from(warm.rounds))
+    } else {
+        ProgressBar::hidden()
+    };
+    let log_path = paths.out.join("imitation.jsonl");
+    let mut text = String::new();
+    let (actor, _) = crate::imitation::imitate(
+        state.learner.actor.clone(),
+        arch,
+        config,
+        warm,
+        device,
+        &mut |r| {
+            bar.inc(1);
+            bar.set_message(format!("mse {:.4}", r.mse));
+            text.push_str(&serde_json::to_string(r).unwrap_or_default());
+            text.push('\n');
+            if r.round % 5 == 0 || r.round == warm.rounds {
+                let line = format!(
+                    "round {:>3}  teacher {:.2}  {} samples  mse {:.4}  gates {:.2}/s  crashes {:.3}/s",
+                    r.round, r.teacher_share, r.samples, r.mse, r.gates_per_s, r.crash_rate_per_s
+                );
+                if progress {
+                    bar.println(line);
+                } else {
+                    println!("{line}");
+                }
+            }
+        },
+    )?;
+    bar.finish_and_clear();
+    write_atomically(&log_path, text.as_bytes()).map_err(io(&log_path))?;
+    let elapsed = started.elapsed().as_secs_f64();
+    state.wall_s += elapsed;
+    state.learner = Learner::new(
+        actor,
+        state.learner.critic.clone(),
+        state.learner.learning_rate,
+        device.clone(),
+    );
+    let preset = Preset::by_name(&config.env.preset).unwrap_or_else(Preset::paper);
+    if let Some(r) = referee_eval(&actor_blob(&state.learner.actor, config, 0)?, preset) {
+        println!(
+            "imitation done in {elapsed:.0} s; the student, referee 45 s from the stage-1 spawn: success {:.3}, crashes {:.3}/s, best lap {}",
+            r.success_rate,
+            r.crash_rate,
+            r.best_lap_s.map_or("DNF".into(), |l| format!("{l:.2} s"))
+        );
+    }
+    let student = paths.out.join("warm_start.blob");
+    write_atomically(&student, &actor_blob(&state.learner.actor, config, 0)?)
+        .map_err(io(&student))?;
+    std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
+    save_checkpoint(paths, state, config)
+}
+
 /// Runs (or resumes) the training run of `config` into `options.out`.
 pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, TrainError> {
     let (_, arch) = architecture(config)?;
@@ -579,8 +713,11 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
         }
         std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
         let mut rng = init_rng(config.run.seed);
-        let actor = Actor::new(&arch, config.ppo.init_std, &mut rng, &device);
+        let mut actor = Actor::new(&arch, config.ppo.init_std, &mut rng, &device);
         let critic = Critic::new(&arch, &mut rng, &device);
+        if config.ppo.init_hover {
+            actor = actor.with_output_bias(hover_action(config));
+        }
         RunState {
             learner: Learner::new(actor, critic, config.ppo.learning_rate, device.clone()),
             iteration: 0,
@@ -591,6 +728,28 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
             history: Vec::new(),
         }
     };
+    if state.iteration == 0 && !options.resume {
+        if let Some(path) = &options.init_actor {
+            let actor = actor_from_blob(path, &arch, config, &device)?;
+            state.learner = Learner::new(
+                actor,
+                state.learner.critic.clone(),
+                state.learner.learning_rate,
+                device.clone(),
+            );
+            println!("actor initialised from {}", path.display());
+        } else if let Some(warm) = &config.warm_start {
+            warm_start(
+                &mut state,
+                &arch,
+                config,
+                warm,
+                &paths,
+                &device,
+                options.progress,
+            )?;
+        }
+    }
     let config_text = toml::to_string(config).unwrap_or_default();
     write_atomically(&paths.out.join("config.toml"), config_text.as_bytes())
         .map_err(io(&paths.out))?;
@@ -632,6 +791,10 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
 
     while state.iteration < stop_at {
         let started = Instant::now();
+        state.learner.train_actor = config
+            .warm_start
+            .as_ref()
+            .is_none_or(|w| state.iteration >= w.critic_iterations);
         // Rollout with the deployed network.
         let payload = state.learner.actor.payload();
         let std = state.learner.actor.std();
@@ -749,7 +912,7 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
             let lap = m
                 .eval_best_lap_s
                 .map_or("DNF".to_string(), |l| format!("{l:.2} s"));
-            bar.println(format!(
+            let line = format!(
                 "it {:>5}  {:>6.0} s  {:>7.0} samples/s  reward/step {:+.4}  rollout success {:.3}  referee: success {:.3}, crashes {:.3}/s, best lap {lap}",
                 m.iteration,
                 m.wall_s,
@@ -758,18 +921,11 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
                 m.success_rate,
                 m.eval_success_rate.unwrap_or(0.0),
                 m.eval_crash_rate.unwrap_or(0.0),
-            ));
-            if !options.progress {
-                println!(
-                    "it {:>5}  {:>6.0} s  {:>7.0} samples/s  reward/step {:+.4}  rollout success {:.3}  referee: success {:.3}, crashes {:.3}/s, best lap {lap}",
-                    m.iteration,
-                    m.wall_s,
-                    m.samples_per_s,
-                    m.reward_per_step,
-                    m.success_rate,
-                    m.eval_success_rate.unwrap_or(0.0),
-                    m.eval_crash_rate.unwrap_or(0.0),
-                );
+            );
+            if options.progress {
+                bar.println(line);
+            } else {
+                println!("{line}");
             }
         }
         bar.set_position(u64::from(state.iteration));
@@ -777,17 +933,20 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
             "{:.0} samples/s  reward/step {:+.4}  success {:.3}  σ {:.2}",
             m.samples_per_s, m.reward_per_step, m.success_rate, m.action_std
         ));
+        let evaluated = m.eval_success_rate.is_some();
         append_metrics(&paths, &m)?;
         state.history.push(m);
+        if evaluated {
+            // Curves to watch while the run goes on.
+            write_curves(&paths, &config.run.name, &state.history)?;
+        }
         if state.iteration % config.run.checkpoint_every == 0 || state.iteration == stop_at {
             save_checkpoint(&paths, &state, config)?;
         }
     }
     bar.finish_and_clear();
 
-    let curves = learning_curves(&config.run.name, &state.history);
-    let curves_path = paths.out.join("learning_curves.svg");
-    write_atomically(&curves_path, curves.as_bytes()).map_err(io(&curves_path))?;
+    write_curves(&paths, &config.run.name, &state.history)?;
     let mut blob_path = None;
     if state.iteration >= total {
         let blob = actor_blob(&state.learner.actor, config, state.iteration)?;

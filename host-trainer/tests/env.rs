@@ -17,7 +17,12 @@ fn config(num_envs: usize) -> EnvConfig {
         spawn: SpawnMode::Stage1,
         episode_s: 15.0,
         random_initial_episode_length: false,
+        spawn_speed_mps: 0.0,
+        stage1_fraction: 0.0,
         reward: RewardWeights::default(),
+        observation: firmware_core::observation::ObservationSpec::paper(
+            firmware_core::observation::ObservationLayout::TimeTrial17,
+        ),
         seed: 3,
     }
 }
@@ -124,6 +129,8 @@ fn deterministic_per_seed() {
             let mut env = TrainEnv::new(EnvConfig {
                 spawn: SpawnMode::AlongTrack,
                 random_initial_episode_length: true,
+                spawn_speed_mps: 0.0,
+                stage1_fraction: 0.0,
                 seed,
                 ..config(300)
             });

@@ -52,7 +52,12 @@ fn env_observations(steps: usize) -> (Vec<f32>, Rollout) {
         spawn: SpawnMode::AlongTrack,
         episode_s: 15.0,
         random_initial_episode_length: true,
+        spawn_speed_mps: 0.0,
+        stage1_fraction: 0.0,
         reward: RewardWeights::default(),
+        observation: firmware_core::observation::ObservationSpec::paper(
+            firmware_core::observation::ObservationLayout::TimeTrial17,
+        ),
         seed: 5,
     });
     let mut rng = ChaCha8Rng::seed_from_u64(9);

@@ -22,6 +22,7 @@ fn options(out: &Path, resume: bool, stop_after: Option<u32>) -> RunOptions {
         device: Device::flex().autodiff(),
         progress: false,
         stop_after,
+        init_actor: None,
     }
 }
 

@@ -1,0 +1,117 @@
+//! The PPO update and a whole training iteration, stage 1 (MLP 2×128 actor and critic).
+//!
+//! - `ppo_update/minibatch_25600_{parallel,sequential}`: one minibatch step on 25,600
+//!   samples (forward, KL, clipped losses, backward, global clip, Adam) with the actor's and
+//!   the critic's passes on two threads or one after the other, in the same run;
+//! - `train_iteration/stage1`: one PPO iteration of `configs/stage1.toml` end to end
+//!   (rollout of 512 envs × 50 steps with the deployed network, then 5 epochs × 2
+//!   minibatches of 12,800), checkpoint load and save included.
+//!
+//! `cargo bench -p host-trainer --bench ppo_update`
+
+use burn::tensor::Device;
+use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use firmware_core::policy::{Architecture, TableRow};
+use host_trainer::config::TrainConfig;
+use host_trainer::env::{EnvConfig, OBS_DIM, RewardWeights, TrainEnv};
+use host_trainer::model::{Actor, Critic, init_rng};
+use host_trainer::ppo::{Learner, Rollout};
+use host_trainer::train::{RunOptions, ppo_params, run};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use sitl::dynamics::Preset;
+use sitl::referee::SpawnMode;
+
+const STAGE1: &str = include_str!("../configs/stage1.toml");
+
+fn learner() -> Learner {
+    let device = Device::flex().autodiff();
+    let arch = Architecture::table1(TableRow::A);
+    let mut rng = init_rng(1);
+    let actor = Actor::new(&arch, 1.0, &mut rng, &device);
+    let critic = Critic::new(&arch, &mut rng, &device);
+    Learner::new(actor, critic, 1e-4, device)
+}
+
+/// A rollout of `envs × steps` from the environment with random actions.
+fn rollout(envs: usize, steps: usize) -> Rollout {
+    let mut env = TrainEnv::new(EnvConfig {
+        num_envs: envs,
+        preset: Preset::paper(),
+        spawn: SpawnMode::AlongTrack,
+        episode_s: 15.0,
+        random_initial_episode_length: true,
+        spawn_speed_mps: 0.0,
+        stage1_fraction: 0.0,
+        reward: RewardWeights::default(),
+        observation: firmware_core::observation::ObservationSpec::paper(
+            firmware_core::observation::ObservationLayout::TimeTrial17,
+        ),
+        seed: 0,
+    });
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut r = Rollout::new(envs, OBS_DIM);
+    for _ in 0..steps {
+        r.obs.extend_from_slice(env.observations());
+        let a: Vec<f32> = (0..envs * 4).map(|_| rng.random_range(-1.0..1.0)).collect();
+        env.step(&a).unwrap();
+        r.actions.extend_from_slice(&a);
+        r.rewards.extend_from_slice(env.rewards());
+        r.dones.extend_from_slice(env.dones());
+        r.timeouts.extend_from_slice(env.timeouts());
+    }
+    r.last_obs.extend_from_slice(env.observations());
+    r
+}
+
+fn update(c: &mut Criterion) {
+    let config = TrainConfig::parse(STAGE1).unwrap();
+    let p = ppo_params(&config);
+    let mut l = learner();
+    let batch = l.prepare(&rollout(256, 100), &p);
+    let idx: Vec<usize> = (0..batch.len()).collect();
+    let mut g = c.benchmark_group("ppo_update");
+    g.throughput(Throughput::Elements(idx.len() as u64));
+    g.sample_size(10);
+    for parallel in [true, false] {
+        l.parallel = parallel;
+        let name = if parallel { "parallel" } else { "sequential" };
+        g.bench_function(format!("minibatch_25600_{name}"), |b| {
+            b.iter(|| l.train_minibatch(&batch, &idx, &p))
+        });
+    }
+    g.finish();
+}
+
+fn iteration(c: &mut Criterion) {
+    let mut config = TrainConfig::parse(STAGE1).unwrap();
+    let dir = std::env::temp_dir().join(format!("overtake-bench-{}", std::process::id()));
+    // PPO iterations only (the imitation warm start runs once per run, not per iteration).
+    config.warm_start = None;
+    config.run.eval_every = 1_000_000;
+    config.run.checkpoint_every = 1_000_000;
+    config.run.iterations = 1_000_000;
+    let mut g = c.benchmark_group("train_iteration");
+    g.throughput(Throughput::Elements(config.samples_per_iteration() as u64));
+    g.sample_size(10);
+    let mut first = true;
+    g.bench_function("stage1", |b| {
+        b.iter(|| {
+            let options = RunOptions {
+                out: dir.clone(),
+                resume: !first,
+                device: Device::flex().autodiff(),
+                progress: false,
+                stop_after: Some(1),
+                init_actor: None,
+            };
+            first = false;
+            run(&config, &options).unwrap()
+        })
+    });
+    g.finish();
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+criterion_group!(benches, update, iteration);
+criterion_main!(benches);

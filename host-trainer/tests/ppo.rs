@@ -1,0 +1,182 @@
+//! PPO's direction and its pieces: an update raises the probability of actions with positive
+//! advantages and lowers it for negative ones; GAE against a hand computation; the Gaussian
+//! log-density against the closed form.
+
+use burn::tensor::{Device, Tensor, TensorData};
+use firmware_core::policy::{Architecture, TableRow};
+use host_trainer::model::{Actor, Critic, init_rng, values};
+use host_trainer::ppo::{Batch, Learner, PpoParams, gae, gaussian_log_prob};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn params() -> PpoParams {
+    PpoParams {
+        epochs: 1,
+        minibatches: 1,
+        clip: 0.2,
+        gamma: 0.99,
+        lambda: 0.95,
+        value_coef: 1.0,
+        entropy_coef: 0.0,
+        desired_kl: None,
+        max_grad_norm: 1.0,
+    }
+}
+
+#[test]
+fn an_update_moves_the_mean_toward_positive_advantages() {
+    let device = Device::flex().autodiff();
+    let arch = Architecture::table1(TableRow::A);
+    let mut rng = init_rng(4);
+    let actor = Actor::new(&arch, 0.5, &mut rng, &device);
+    let critic = Critic::new(&arch, &mut rng, &device);
+    let mut learner = Learner::new(actor, critic, 1e-3, device.clone());
+    let mut r = ChaCha8Rng::seed_from_u64(2);
+    let n = 2048;
+    let obs: Vec<f32> = (0..n * 17).map(|_| r.random_range(-1.0..1.0)).collect();
+    let mean = values(learner.actor.mean(Tensor::from_data(
+        TensorData::new(obs.clone(), [n, 17]),
+        &device,
+    )));
+    let std = [0.5f32; 4];
+    // Motor 0 sampled around the mean; the advantage is the sign of its deviation: actions
+    // above the mean were good.
+    let mut actions = mean.clone();
+    let mut advantages = Vec::new();
+    for i in 0..n {
+        let d: f32 = r.random_range(-0.5..0.5);
+        actions[i * 4] += d;
+        advantages.push(d.signum());
+    }
+    let old_log_prob = actions
+        .chunks_exact(4)
+        .zip(mean.chunks_exact(4))
+        .map(|(a, m)| gaussian_log_prob(a, m, &std))
+        .collect();
+    let batch = Batch {
+        obs_dim: 17,
+        obs: obs.clone(),
+        actions,
+        old_log_prob,
+        old_mean: mean.clone(),
+        old_std: std,
+        old_values: vec![0.0; n],
+        returns: vec![0.0; n],
+        advantages,
+    };
+    let idx: Vec<usize> = (0..n).collect();
+    for _ in 0..5 {
+        learner.train_minibatch(&batch, &idx, &params());
+    }
+    let after = values(
+        learner
+            .actor
+            .mean(Tensor::from_data(TensorData::new(obs, [n, 17]), &device)),
+    );
+    let shift = |k: usize| -> f32 {
+        (0..n)
+            .map(|i| after[i * 4 + k] - mean[i * 4 + k])
+            .sum::<f32>()
+            / n as f32
+    };
+    println!(
+        "mean shift per motor: {:?}",
+        [shift(0), shift(1), shift(2), shift(3)]
+    );
+    assert!(shift(0) > 0.01, "motor 0 moved by {}", shift(0));
+    for k in 1..4 {
+        assert!(
+            shift(k).abs() < shift(0) / 3.0,
+            "motor {k} moved by {}",
+            shift(k)
+        );
+    }
+}
+
+#[test]
+fn gae_matches_a_hand_computation() {
+    // One env, three steps, a done after the second.
+    let (g, l) = (0.9f32, 0.5f32);
+    let rewards = [1.0, 2.0, 3.0];
+    let dones = [false, true, false];
+    let values = [0.5, 0.25, 1.0];
+    let last = [2.0];
+    let returns = gae(&rewards, &dones, &values, &last, g, l);
+    // t = 2: δ = 3 + 0.9·2 − 1 = 3.8, A = 3.8.
+    // t = 1 (done): δ = 2 − 0.25 = 1.75, A = 1.75.
+    // t = 0: δ = 1 + 0.9·0.25 − 0.5 = 0.725, A = 0.725 + 0.9·0.5·1.75 = 1.5125.
+    let expected = [1.5125 + 0.5, 1.75 + 0.25, 3.8 + 1.0];
+    for (r, e) in returns.iter().zip(expected) {
+        assert!((r - e).abs() < 1e-6, "{returns:?} vs {expected:?}");
+    }
+}
+
+#[test]
+fn gaussian_log_prob_is_the_closed_form() {
+    let lp = gaussian_log_prob(
+        &[0.3, -0.2, 0.0, 1.0],
+        &[0.1, 0.1, 0.0, 0.5],
+        &[0.5, 1.0, 2.0, 0.25],
+    );
+    let mut e = 0.0f64;
+    for (a, m, s) in [
+        (0.3, 0.1, 0.5),
+        (-0.2, 0.1, 1.0),
+        (0.0, 0.0, 2.0),
+        (1.0, 0.5, 0.25),
+    ] {
+        let z: f64 = (a - m) / s;
+        e += -0.5 * z * z - f64::ln(s) - 0.5 * f64::ln(2.0 * std::f64::consts::PI);
+    }
+    assert!((f64::from(lp) - e).abs() < 1e-5, "{lp} vs {e}");
+}
+
+/// The actor's and the critic's passes on two threads give exactly the update of the two
+/// passes one after the other.
+#[test]
+fn parallel_passes_equal_sequential_passes() {
+    let device = Device::flex().autodiff();
+    let arch = Architecture::table1(TableRow::A);
+    let make = || {
+        let mut rng = init_rng(9);
+        let actor = Actor::new(&arch, 0.5, &mut rng, &device);
+        let critic = Critic::new(&arch, &mut rng, &device);
+        Learner::new(actor, critic, 1e-3, device.clone())
+    };
+    let mut r = ChaCha8Rng::seed_from_u64(5);
+    let n = 4096;
+    let mut f = |k: usize, a: f32| -> Vec<f32> { (0..k).map(|_| r.random_range(-a..a)).collect() };
+    let obs = f(n * 17, 1.0);
+    let actions = f(n * 4, 1.0);
+    let old_mean = f(n * 4, 0.5);
+    let old_log_prob = f(n, 1.0).iter().map(|x| x - 4.0).collect();
+    let batch = Batch {
+        obs_dim: 17,
+        obs,
+        actions,
+        old_log_prob,
+        old_mean,
+        old_std: [0.5; 4],
+        old_values: f(n, 0.2),
+        returns: f(n, 0.5),
+        advantages: f(n, 2.0),
+    };
+    let idx: Vec<usize> = (0..n).collect();
+    let mut p = params();
+    p.desired_kl = Some(0.01);
+    let (mut a, mut b) = (make(), make());
+    b.parallel = false;
+    for _ in 0..3 {
+        let sa = a.train_minibatch(&batch, &idx, &p);
+        let sb = b.train_minibatch(&batch, &idx, &p);
+        assert_eq!(sa, sb);
+    }
+    assert_eq!(a.actor.payload(), b.actor.payload());
+    let v = |l: &Learner| {
+        values(l.critic.value(Tensor::from_data(
+            TensorData::new(batch.obs[..17 * 64].to_vec(), [64, 17]),
+            &device,
+        )))
+    };
+    assert_eq!(v(&a), v(&b));
+}
