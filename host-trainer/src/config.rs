@@ -72,6 +72,10 @@ pub struct RunConfig {
     pub eval_every: u32,
 }
 
+fn default_min_learning_rate() -> f64 {
+    1e-5
+}
+
 fn default_velocity_scale() -> f32 {
     3.0
 }
@@ -133,6 +137,13 @@ pub struct PpoConfig {
     pub desired_kl: Option<f64>,
     /// Gradient norm clip. Paper: 1.0.
     pub max_grad_norm: f32,
+    /// Floor of the adaptive learning rate. Paper (RSL-RL): 1e-5. Default 1e-5.
+    #[serde(default = "default_min_learning_rate")]
+    pub min_learning_rate: f64,
+    /// A fixed critic learning rate instead of the actor's adaptive one. Paper: none (one
+    /// rate). Default none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub critic_learning_rate: Option<f64>,
     /// Initial action standard deviation. Paper: 1.0.
     pub init_std: f32,
     /// Start the actor's output bias at the preset's hover action (a ≈ 0.52 with `paper`)
@@ -209,7 +220,12 @@ impl TrainConfig {
             return bad("env.velocity_scale_mps must be positive".into());
         }
         if let Some(w) = &self.warm_start {
-            if w.rounds == 0 || w.steps_per_env == 0 || w.epochs == 0 || w.minibatch == 0 {
+            if w.rounds == 0
+                || w.steps_per_env == 0
+                || w.epochs == 0
+                || w.minibatch == 0
+                || w.max_samples == 0
+            {
                 return bad(
                     "warm_start.rounds, steps_per_env, epochs and minibatch must be positive"
                         .into(),
@@ -247,8 +263,23 @@ impl TrainConfig {
                 "ppo.gamma and lambda must be in [0, 1], clip and learning_rate > 0".into(),
             );
         }
-        if !(p.init_std > 0.0 && p.max_grad_norm > 0.0) {
-            return bad("ppo.init_std and max_grad_norm must be positive".into());
+        if !(p.init_std.is_finite() && p.init_std > 0.0 && p.max_grad_norm > 0.0) {
+            return bad("ppo.init_std and max_grad_norm must be positive and finite".into());
+        }
+        let finite_nonneg = |v: f32| v.is_finite() && v >= 0.0;
+        if !(finite_nonneg(p.value_coef) && finite_nonneg(p.entropy_coef)) {
+            return bad("ppo.value_coef and entropy_coef must be finite and >= 0".into());
+        }
+        if p.desired_kl.is_some_and(|k| !(k.is_finite() && k > 0.0)) {
+            return bad("ppo.desired_kl must be positive".into());
+        }
+        if !(p.min_learning_rate > 0.0 && p.min_learning_rate <= p.learning_rate) {
+            return bad("ppo.min_learning_rate must be in (0, learning_rate]".into());
+        }
+        if p.critic_learning_rate
+            .is_some_and(|r| !(r.is_finite() && r > 0.0))
+        {
+            return bad("ppo.critic_learning_rate must be positive".into());
         }
         Ok(())
     }

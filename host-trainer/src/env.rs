@@ -242,6 +242,11 @@ impl TrainEnv {
         self.slots.len()
     }
 
+    /// Simulated seconds of one step (the control period).
+    pub fn dt_s(&self) -> f32 {
+        self.world.dt_s
+    }
+
     /// Env-steps per episode before a time-out.
     pub fn max_episode_steps(&self) -> u32 {
         self.max_steps

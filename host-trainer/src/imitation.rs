@@ -127,7 +127,7 @@ pub fn imitate(
             }
             mse = sum / f64::max(batches, 1.0);
         }
-        let sim_s = stats.steps as f64 * 0.02;
+        let sim_s = stats.steps as f64 * f64::from(env.dt_s());
         let r = ImitationRound {
             round: round + 1,
             teacher_share: from_teacher as f64 / (n * warm.steps_per_env).max(1) as f64,

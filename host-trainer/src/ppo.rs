@@ -47,6 +47,11 @@ pub struct PpoParams {
     pub desired_kl: Option<f64>,
     /// Global gradient-norm clip.
     pub max_grad_norm: f32,
+    /// Floor of the adaptive learning rate. RSL-RL and SPEC: 1e-5.
+    pub min_learning_rate: f64,
+    /// A fixed learning rate for the critic; `None` shares the actor's adaptive rate
+    /// (RSL-RL: one optimiser, one rate).
+    pub critic_learning_rate: Option<f64>,
 }
 
 /// One iteration's transitions, time-major (`[step][env]`).
@@ -209,6 +214,9 @@ pub struct UpdateStats {
     pub grad_norm: f64,
     /// Learning rate after the update.
     pub learning_rate: f64,
+    /// Minibatches skipped because a loss or the gradient norm was not finite (the networks
+    /// are left as they were).
+    pub skipped: u32,
 }
 
 /// Sums the squares of the gradients of a module's parameters.
@@ -464,6 +472,10 @@ impl Learner {
             order.shuffle(rng);
             for mb in order.chunks_exact(size.max(1)) {
                 let s = self.train_minibatch(batch, mb, p);
+                if s.skipped > 0 {
+                    stats.skipped += s.skipped;
+                    continue;
+                }
                 stats.surrogate_loss += s.surrogate_loss;
                 stats.value_loss += s.value_loss;
                 stats.entropy += s.entropy;
@@ -490,16 +502,24 @@ impl Learner {
     /// minibatch's sample indices into `b`.
     pub fn train_minibatch(&mut self, b: &Batch, idx: &[usize], p: &PpoParams) -> UpdateStats {
         let (actor, critic, device) = (&self.actor, &self.critic, &self.device);
+        let critic_lr = p.critic_learning_rate.unwrap_or(self.learning_rate);
         if !self.train_actor {
             let (mut grads, value_loss) = critic_pass(critic, b, idx, p, device);
             let norm = squared_norm(critic, &grads).sqrt();
+            if !(norm.is_finite() && value_loss.is_finite()) {
+                return UpdateStats {
+                    skipped: 1,
+                    learning_rate: self.learning_rate,
+                    ..UpdateStats::default()
+                };
+            }
             let max = f64::from(p.max_grad_norm);
             if norm > max {
                 scale(critic, &mut grads, (max / (norm + 1e-6)) as f32);
             }
             self.critic = self
                 .critic_optim
-                .step(self.learning_rate, self.critic.clone(), grads);
+                .step(critic_lr, self.critic.clone(), grads);
             return UpdateStats {
                 value_loss,
                 grad_norm: norm,
@@ -530,16 +550,26 @@ impl Learner {
             clip_fraction,
         } = actor_pass;
         let mut critic_grads = critic_grads;
+        let norm = (squared_norm(&self.actor, &actor_grads)
+            + squared_norm(&self.critic, &critic_grads))
+        .sqrt();
+        if !(norm.is_finite() && surrogate.is_finite() && value_loss.is_finite() && kl.is_finite())
+        {
+            // A NaN or an overflow would spread into every weight through Adam: keep the
+            // networks and count the minibatch instead.
+            return UpdateStats {
+                skipped: 1,
+                learning_rate: self.learning_rate,
+                ..UpdateStats::default()
+            };
+        }
         if let Some(target) = p.desired_kl {
             if kl > 2.0 * target {
-                self.learning_rate = (self.learning_rate / 1.5).max(1e-5);
+                self.learning_rate = (self.learning_rate / 1.5).max(p.min_learning_rate);
             } else if kl < target / 2.0 && kl > 0.0 {
                 self.learning_rate = (self.learning_rate * 1.5).min(1e-2);
             }
         }
-        let norm = (squared_norm(&self.actor, &actor_grads)
-            + squared_norm(&self.critic, &critic_grads))
-        .sqrt();
         let max = f64::from(p.max_grad_norm);
         if norm > max {
             let factor = (max / (norm + 1e-6)) as f32;
@@ -548,9 +578,10 @@ impl Learner {
         }
         let lr = self.learning_rate;
         self.actor = self.actor_optim.step(lr, self.actor.clone(), actor_grads);
+        let critic_lr = p.critic_learning_rate.unwrap_or(lr);
         self.critic = self
             .critic_optim
-            .step(lr, self.critic.clone(), critic_grads);
+            .step(critic_lr, self.critic.clone(), critic_grads);
         UpdateStats {
             surrogate_loss: surrogate,
             value_loss,
@@ -559,6 +590,7 @@ impl Learner {
             clip_fraction,
             grad_norm: norm,
             learning_rate: lr,
+            skipped: 0,
         }
     }
 }

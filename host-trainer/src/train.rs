@@ -157,6 +157,9 @@ pub struct IterationMetrics {
     pub learning_rate: f64,
     /// Mean σ of the policy.
     pub action_std: f64,
+    /// Minibatches skipped for a non-finite loss or gradient.
+    #[serde(default)]
+    pub skipped_minibatches: u32,
     /// Referee, deterministic policy, 45 s from the stage-1 spawn: success rate.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub eval_success_rate: Option<f64>,
@@ -281,6 +284,8 @@ pub fn ppo_params(config: &TrainConfig) -> PpoParams {
         entropy_coef: p.entropy_coef,
         desired_kl: p.desired_kl,
         max_grad_norm: p.max_grad_norm,
+        min_learning_rate: p.min_learning_rate,
+        critic_learning_rate: p.critic_learning_rate,
     }
 }
 
@@ -738,6 +743,8 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
                 device.clone(),
             );
             println!("actor initialised from {}", path.display());
+            std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
+            save_checkpoint(&paths, &state, config)?;
         } else if let Some(warm) = &config.warm_start {
             warm_start(
                 &mut state,
@@ -764,7 +771,7 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
     let n = env.num_envs();
     let steps = config.ppo.steps_per_env;
     let params = ppo_params(config);
-    let dt = f64::from(env.max_episode_steps()).recip() * f64::from(config.env.episode_s);
+    let dt = f64::from(env.dt_s());
     let mut rollout = Rollout::new(n, OBS_DIM);
     let mut episode_return = vec![0.0f64; n];
     let mut episode_len = vec![0u32; n];
@@ -897,6 +904,7 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
             clip_fraction: u.clip_fraction,
             grad_norm: u.grad_norm,
             learning_rate: u.learning_rate,
+            skipped_minibatches: u.skipped,
             action_std: std_now.iter().map(|&s| f64::from(s)).sum::<f64>()
                 / std_now.len().max(1) as f64,
             ..IterationMetrics::default()

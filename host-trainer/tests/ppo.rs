@@ -20,6 +20,8 @@ fn params() -> PpoParams {
         entropy_coef: 0.0,
         desired_kl: None,
         max_grad_norm: 1.0,
+        min_learning_rate: 1e-5,
+        critic_learning_rate: None,
     }
 }
 
@@ -179,4 +181,36 @@ fn parallel_passes_equal_sequential_passes() {
         )))
     };
     assert_eq!(v(&a), v(&b));
+}
+
+/// A non-finite advantage (or loss) skips the minibatch and leaves both networks as they
+/// were, instead of writing NaN into every weight through Adam.
+#[test]
+fn a_nan_minibatch_changes_nothing() {
+    let device = Device::flex().autodiff();
+    let arch = Architecture::table1(TableRow::A);
+    let mut rng = init_rng(2);
+    let actor = Actor::new(&arch, 0.5, &mut rng, &device);
+    let critic = Critic::new(&arch, &mut rng, &device);
+    let mut learner = Learner::new(actor, critic, 1e-3, device.clone());
+    let n = 256;
+    let mut advantages = vec![0.5f32; n];
+    advantages[17] = f32::NAN;
+    let batch = Batch {
+        obs_dim: 17,
+        obs: vec![0.1; n * 17],
+        actions: vec![0.2; n * 4],
+        old_log_prob: vec![-3.0; n],
+        old_mean: vec![0.0; n * 4],
+        old_std: [0.5; 4],
+        old_values: vec![0.0; n],
+        returns: vec![0.1; n],
+        advantages,
+    };
+    let before = learner.actor.payload();
+    let idx: Vec<usize> = (0..n).collect();
+    let s = learner.train_minibatch(&batch, &idx, &params());
+    assert_eq!(s.skipped, 1);
+    assert_eq!(learner.actor.payload(), before);
+    assert!(learner.actor.payload().iter().all(|w| w.is_finite()));
 }
