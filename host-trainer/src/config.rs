@@ -76,6 +76,10 @@ fn default_min_learning_rate() -> f64 {
     1e-5
 }
 
+fn is_default_min_learning_rate(v: &f64) -> bool {
+    *v == default_min_learning_rate()
+}
+
 fn default_velocity_scale() -> f32 {
     3.0
 }
@@ -137,8 +141,13 @@ pub struct PpoConfig {
     pub desired_kl: Option<f64>,
     /// Gradient norm clip. Paper: 1.0.
     pub max_grad_norm: f32,
-    /// Floor of the adaptive learning rate. Paper (RSL-RL): 1e-5. Default 1e-5.
-    #[serde(default = "default_min_learning_rate")]
+    /// Floor of the adaptive learning rate. Paper (RSL-RL): 1e-5. Default 1e-5. (Left out of
+    /// the canonical TOML at its default, so configs written before it existed keep their
+    /// hash.)
+    #[serde(
+        default = "default_min_learning_rate",
+        skip_serializing_if = "is_default_min_learning_rate"
+    )]
     pub min_learning_rate: f64,
     /// A fixed critic learning rate instead of the actor's adaptive one. Paper: none (one
     /// rate). Default none.
@@ -285,7 +294,10 @@ impl TrainConfig {
     }
 
     /// A stable 64-bit hash of the configuration (FNV-1a of its canonical TOML), recorded in
-    /// checkpoints and blobs: a resumed run refuses a changed config.
+    /// checkpoints and blobs: a resumed run refuses a changed config. A field added to the
+    /// schema later must be left out of the canonical TOML at its default, or every earlier
+    /// blob's hash stops matching its config (`host-trainer/tests/shipped_policies.rs`
+    /// catches that).
     pub fn hash(&self) -> u64 {
         let canonical = toml::to_string(self).unwrap_or_default();
         canonical.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
