@@ -4,26 +4,11 @@
 //! `cargo bench -p host-trainer --bench env_step`
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use host_trainer::env::{EnvConfig, RewardWeights, TrainEnv};
-use sitl::dynamics::Preset;
-use sitl::referee::SpawnMode;
+use host_trainer::env::{EnvConfig, TrainEnv};
 
 fn bench(c: &mut Criterion) {
     let n = 4096;
-    let mut env = TrainEnv::new(EnvConfig {
-        num_envs: n,
-        preset: Preset::paper(),
-        spawn: SpawnMode::AlongTrack,
-        episode_s: 15.0,
-        random_initial_episode_length: true,
-        spawn_speed_mps: 0.0,
-        stage1_fraction: 0.0,
-        reward: RewardWeights::default(),
-        observation: firmware_core::observation::ObservationSpec::paper(
-            firmware_core::observation::ObservationLayout::TimeTrial17,
-        ),
-        seed: 0,
-    });
+    let mut env = TrainEnv::new(EnvConfig::paper_along_track(n, 0));
     // Near-hover actions with a per-env differential, as an early policy flies.
     let actions: Vec<f32> = (0..n * 4)
         .map(|i| 0.52 + 0.05 * ((i % 9) as f32 - 4.0) / 4.0)

@@ -13,14 +13,12 @@ use burn::tensor::Device;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::config::TrainConfig;
-use host_trainer::env::{EnvConfig, OBS_DIM, RewardWeights, TrainEnv};
+use host_trainer::env::{EnvConfig, OBS_DIM, TrainEnv};
 use host_trainer::model::{Actor, Critic, init_rng};
 use host_trainer::ppo::{Learner, Rollout};
 use host_trainer::train::{RunOptions, ppo_params, run};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use sitl::dynamics::Preset;
-use sitl::referee::SpawnMode;
 
 const STAGE1: &str = include_str!("../configs/stage1.toml");
 
@@ -35,20 +33,7 @@ fn learner() -> Learner {
 
 /// A rollout of `envs × steps` from the environment with random actions.
 fn rollout(envs: usize, steps: usize) -> Rollout {
-    let mut env = TrainEnv::new(EnvConfig {
-        num_envs: envs,
-        preset: Preset::paper(),
-        spawn: SpawnMode::AlongTrack,
-        episode_s: 15.0,
-        random_initial_episode_length: true,
-        spawn_speed_mps: 0.0,
-        stage1_fraction: 0.0,
-        reward: RewardWeights::default(),
-        observation: firmware_core::observation::ObservationSpec::paper(
-            firmware_core::observation::ObservationLayout::TimeTrial17,
-        ),
-        seed: 0,
-    });
+    let mut env = TrainEnv::new(EnvConfig::paper_along_track(envs, 0));
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut r = Rollout::new(envs, OBS_DIM);
     for _ in 0..steps {

@@ -117,6 +117,28 @@ pub struct EnvConfig {
     pub seed: u64,
 }
 
+impl EnvConfig {
+    /// `num_envs` envs with the paper's settings (preset, SPEC reward, observation spec,
+    /// 15 s episodes), spawned along the track at rest with random initial episode lengths,
+    /// seeded with `seed`: the base that configs and tests adjust.
+    pub fn paper_along_track(num_envs: usize, seed: u64) -> Self {
+        Self {
+            num_envs,
+            preset: Preset::paper(),
+            spawn: SpawnMode::AlongTrack,
+            spawn_speed_mps: 0.0,
+            stage1_fraction: 0.0,
+            episode_s: 15.0,
+            random_initial_episode_length: true,
+            reward: RewardWeights::default(),
+            observation: ObservationSpec::paper(
+                firmware_core::observation::ObservationLayout::TimeTrial17,
+            ),
+            seed,
+        }
+    }
+}
+
 /// Per-step statistics of the whole batch, drained by [`TrainEnv::take_stats`].
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct EnvStats {
@@ -344,7 +366,7 @@ impl TrainEnv {
                     c.reset(d.progress.target);
                     let (cmd, _) = c.step(&d.body.state);
                     for (a, rpm) in a.iter_mut().zip(cmd.rpm) {
-                        *a = ((rpm / map.hover_rpm - 1.0) / map.gain).clamp(-1.0, 1.0);
+                        *a = map.action_for_rpm(rpm).clamp(-1.0, 1.0);
                     }
                 }
             });

@@ -260,8 +260,7 @@ pub fn env_config(config: &TrainConfig, seed: u64) -> Result<EnvConfig, TrainErr
 /// The action that holds hover with the config's preset and the paper's action map.
 pub fn hover_action(config: &TrainConfig) -> f32 {
     let preset = Preset::by_name(&config.env.preset).unwrap_or_else(Preset::paper);
-    let map = firmware_core::vehicle::ActionMap::PAPER;
-    (preset.hover_rpm() / map.hover_rpm - 1.0) / map.gain
+    firmware_core::vehicle::ActionMap::PAPER.action_for_rpm(preset.hover_rpm())
 }
 
 /// The observation spec of a config: the paper's 17 with the configured velocity scale.

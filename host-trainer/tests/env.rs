@@ -5,25 +5,16 @@ use firmware_core::baseline::BaselineController;
 use firmware_core::observation::{ObservationLayout, ObservationSpec};
 use firmware_core::track::{CrashRules, Track};
 use firmware_core::vehicle::{ActionMap, MotorCommand};
-use host_trainer::env::{EnvConfig, OBS_DIM, RewardWeights, TrainEnv};
+use host_trainer::env::{EnvConfig, OBS_DIM, TrainEnv};
 use sitl::dynamics::Preset;
 use sitl::referee::SpawnMode;
 use sitl::world::{Drone, World, stage1_spawn};
 
 fn config(num_envs: usize) -> EnvConfig {
     EnvConfig {
-        num_envs,
-        preset: Preset::paper(),
         spawn: SpawnMode::Stage1,
-        episode_s: 15.0,
         random_initial_episode_length: false,
-        spawn_speed_mps: 0.0,
-        stage1_fraction: 0.0,
-        reward: RewardWeights::default(),
-        observation: firmware_core::observation::ObservationSpec::paper(
-            firmware_core::observation::ObservationLayout::TimeTrial17,
-        ),
-        seed: 3,
+        ..EnvConfig::paper_along_track(num_envs, 3)
     }
 }
 

@@ -7,14 +7,12 @@ use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::blob::{AlignedBytes, Blob};
 use firmware_core::policy::{Architecture, Policy, TableRow};
 use host_trainer::config::TrainConfig;
-use host_trainer::env::{EnvConfig, OBS_DIM, RewardWeights, TrainEnv};
+use host_trainer::env::{EnvConfig, OBS_DIM, TrainEnv};
 use host_trainer::model::{Actor, Critic, init_rng, values};
 use host_trainer::ppo::{Learner, Rollout};
 use host_trainer::train::{actor_blob, ppo_params};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use sitl::dynamics::Preset;
-use sitl::referee::SpawnMode;
 
 const CONFIG: &str = include_str!("../configs/stage1.toml");
 
@@ -46,20 +44,7 @@ fn max_action_diff(actor: &Actor, config: &TrainConfig, obs: &[f32], device: &De
 }
 
 fn env_observations(steps: usize) -> (Vec<f32>, Rollout) {
-    let mut env = TrainEnv::new(EnvConfig {
-        num_envs: 32,
-        preset: Preset::paper(),
-        spawn: SpawnMode::AlongTrack,
-        episode_s: 15.0,
-        random_initial_episode_length: true,
-        spawn_speed_mps: 0.0,
-        stage1_fraction: 0.0,
-        reward: RewardWeights::default(),
-        observation: firmware_core::observation::ObservationSpec::paper(
-            firmware_core::observation::ObservationLayout::TimeTrial17,
-        ),
-        seed: 5,
-    });
+    let mut env = TrainEnv::new(EnvConfig::paper_along_track(32, 5));
     let mut rng = ChaCha8Rng::seed_from_u64(9);
     let mut rollout = Rollout::new(32, OBS_DIM);
     let mut all = Vec::new();
