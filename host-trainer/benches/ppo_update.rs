@@ -16,7 +16,7 @@ use host_trainer::config::TrainConfig;
 use host_trainer::env::{EnvConfig, OBS_DIM, TrainEnv};
 use host_trainer::model::{Actor, Critic, init_rng};
 use host_trainer::ppo::{Learner, Rollout};
-use host_trainer::train::{RunOptions, ppo_params, run};
+use host_trainer::train::{RunOptions, run};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -51,7 +51,7 @@ fn rollout(envs: usize, steps: usize) -> Rollout {
 
 fn update(c: &mut Criterion) {
     let config = TrainConfig::parse(STAGE1).unwrap();
-    let p = ppo_params(&config);
+    let p = config.ppo.clone();
     let mut l = learner();
     let batch = l.prepare(&rollout(256, 100), &p);
     let idx: Vec<usize> = (0..batch.len()).collect();

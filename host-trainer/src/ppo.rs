@@ -15,6 +15,7 @@
 //! every epoch (RSL-RL draws one per update), a log-parameterised σ (RSL-RL's default stores σ
 //! itself, which can go negative).
 
+use crate::config::PpoConfig;
 use crate::model::{Actor, Critic, values};
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
@@ -25,34 +26,6 @@ use rand_chacha::ChaCha8Rng;
 
 /// ln(2π).
 const LN_2PI: f32 = 1.837_877_1;
-
-/// The PPO settings an update needs (a view of `config::PpoConfig`).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct PpoParams {
-    /// Passes over the rollout.
-    pub epochs: usize,
-    /// Minibatches per pass.
-    pub minibatches: usize,
-    /// Surrogate and value clip.
-    pub clip: f32,
-    /// Discount.
-    pub gamma: f32,
-    /// GAE λ.
-    pub lambda: f32,
-    /// Value-loss coefficient.
-    pub value_coef: f32,
-    /// Entropy coefficient.
-    pub entropy_coef: f32,
-    /// KL target of the adaptive learning rate; `None` keeps the rate fixed.
-    pub desired_kl: Option<f64>,
-    /// Global gradient-norm clip.
-    pub max_grad_norm: f32,
-    /// Floor of the adaptive learning rate. RSL-RL and SPEC: 1e-5.
-    pub min_learning_rate: f64,
-    /// A fixed learning rate for the critic; `None` shares the actor's adaptive rate
-    /// (RSL-RL: one optimiser, one rate).
-    pub critic_learning_rate: Option<f64>,
-}
 
 /// One iteration's transitions, time-major (`[step][env]`).
 #[derive(Clone, Debug, Default)]
@@ -299,7 +272,7 @@ fn critic_pass(
     critic: &Critic,
     b: &Batch,
     idx: &[usize],
-    p: &PpoParams,
+    p: &PpoConfig,
     device: &Device,
 ) -> (GradientsParams, f64) {
     let pick = |v: &[f32]| -> Vec<f32> { idx.iter().map(|&i| v[i]).collect() };
@@ -326,7 +299,7 @@ fn actor_pass(
     actor: &Actor,
     b: &Batch,
     idx: &[usize],
-    p: &PpoParams,
+    p: &PpoConfig,
     device: &Device,
 ) -> ActorPass {
     let pick = |v: &[f32]| -> Vec<f32> { idx.iter().map(|&i| v[i]).collect() };
@@ -400,7 +373,7 @@ impl Learner {
     /// Turns a rollout into training samples: old log-probabilities, means and values from
     /// one batched forward pass without autodiff, time-outs bootstrapped with γ·V of the
     /// step's observation (RSL-RL), GAE returns, advantages normalised over the rollout.
-    pub fn prepare(&self, r: &Rollout, p: &PpoParams) -> Batch {
+    pub fn prepare(&self, r: &Rollout, p: &PpoConfig) -> Batch {
         let actor = self.actor.valid();
         let critic = self.critic.valid();
         let device = self.device.clone().without_autodiff();
@@ -462,7 +435,7 @@ impl Learner {
     }
 
     /// `epochs × minibatches` PPO steps on `batch`, minibatches drawn from `rng`.
-    pub fn update(&mut self, batch: &Batch, p: &PpoParams, rng: &mut ChaCha8Rng) -> UpdateStats {
+    pub fn update(&mut self, batch: &Batch, p: &PpoConfig, rng: &mut ChaCha8Rng) -> UpdateStats {
         let n = batch.len();
         let size = n / p.minibatches.max(1);
         let mut stats = UpdateStats::default();
@@ -500,7 +473,7 @@ impl Learner {
     /// One minibatch: actor and critic passes (on two threads when `parallel`), the
     /// KL-adapted learning rate, the global gradient clip, both Adam steps. `idx` are the
     /// minibatch's sample indices into `b`.
-    pub fn train_minibatch(&mut self, b: &Batch, idx: &[usize], p: &PpoParams) -> UpdateStats {
+    pub fn train_minibatch(&mut self, b: &Batch, idx: &[usize], p: &PpoConfig) -> UpdateStats {
         let (actor, critic, device) = (&self.actor, &self.critic, &self.device);
         let critic_lr = p.critic_learning_rate.unwrap_or(self.learning_rate);
         if !self.train_actor {

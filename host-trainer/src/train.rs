@@ -30,7 +30,7 @@
 use crate::config::TrainConfig;
 use crate::env::{EnvConfig, EnvStats, OBS_DIM, TrainEnv};
 use crate::model::{Actor, Critic, init_rng};
-use crate::ppo::{Learner, PpoParams, Rollout, UpdateStats, adam};
+use crate::ppo::{Learner, Rollout, UpdateStats, adam};
 use burn::module::Module;
 use burn::tensor::Device;
 use firmware_core::blob::{BlobHeader, Provenance, encode};
@@ -268,24 +268,6 @@ pub fn observation_spec(config: &TrainConfig) -> ObservationSpec {
     let mut spec = ObservationSpec::paper(ObservationLayout::TimeTrial17);
     spec.velocity_scale_mps = config.env.velocity_scale_mps;
     spec
-}
-
-/// PPO settings of a config.
-pub fn ppo_params(config: &TrainConfig) -> PpoParams {
-    let p = &config.ppo;
-    PpoParams {
-        epochs: p.epochs,
-        minibatches: p.minibatches,
-        clip: p.clip,
-        gamma: p.gamma,
-        lambda: p.lambda,
-        value_coef: p.value_coef,
-        entropy_coef: p.entropy_coef,
-        desired_kl: p.desired_kl,
-        max_grad_norm: p.max_grad_norm,
-        min_learning_rate: p.min_learning_rate,
-        critic_learning_rate: p.critic_learning_rate,
-    }
 }
 
 /// The actor as a firmware-core blob with the run's provenance.
@@ -769,7 +751,7 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
     let mut env = TrainEnv::new(env_config(config, env_seed)?);
     let n = env.num_envs();
     let steps = config.ppo.steps_per_env;
-    let params = ppo_params(config);
+    let params = &config.ppo;
     let dt = f64::from(env.dt_s());
     let mut rollout = Rollout::new(n, OBS_DIM);
     let mut episode_return = vec![0.0f64; n];
@@ -862,10 +844,8 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
 
         // Update.
         let t_update = Instant::now();
-        let batch = state.learner.prepare(&rollout, &params);
-        let u: UpdateStats = state
-            .learner
-            .update(&batch, &params, &mut state.shuffle_rng);
+        let batch = state.learner.prepare(&rollout, params);
+        let u: UpdateStats = state.learner.update(&batch, params, &mut state.shuffle_rng);
         let update_s = t_update.elapsed().as_secs_f64();
 
         state.iteration += 1;

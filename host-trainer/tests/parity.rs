@@ -10,7 +10,7 @@ use host_trainer::config::TrainConfig;
 use host_trainer::env::{EnvConfig, OBS_DIM, TrainEnv};
 use host_trainer::model::{Actor, Critic, init_rng, values};
 use host_trainer::ppo::{Learner, Rollout};
-use host_trainer::train::{actor_blob, ppo_params};
+use host_trainer::train::actor_blob;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -87,7 +87,7 @@ fn exported_blob_acts_as_the_burn_actor() {
     // After PPO updates at a high learning rate have moved every weight.
     let mut learner = Learner::new(actor, critic, 3e-3, device.clone());
     let before = learner.actor.payload();
-    let mut p = ppo_params(&config);
+    let mut p = config.ppo.clone();
     p.desired_kl = None;
     let batch = learner.prepare(&rollout, &p);
     learner.update(&batch, &p, &mut r);

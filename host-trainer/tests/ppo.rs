@@ -4,13 +4,15 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::policy::{Architecture, TableRow};
+use host_trainer::config::PpoConfig;
 use host_trainer::model::{Actor, Critic, init_rng, values};
-use host_trainer::ppo::{Batch, Learner, PpoParams, gae, gaussian_log_prob};
+use host_trainer::ppo::{Batch, Learner, gae, gaussian_log_prob};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-fn params() -> PpoParams {
-    PpoParams {
+fn params() -> PpoConfig {
+    PpoConfig {
+        steps_per_env: 1,
         epochs: 1,
         minibatches: 1,
         clip: 0.2,
@@ -18,10 +20,13 @@ fn params() -> PpoParams {
         lambda: 0.95,
         value_coef: 1.0,
         entropy_coef: 0.0,
+        learning_rate: 1e-3,
         desired_kl: None,
         max_grad_norm: 1.0,
         min_learning_rate: 1e-5,
         critic_learning_rate: None,
+        init_std: 0.5,
+        init_hover: false,
     }
 }
 
