@@ -9,7 +9,7 @@ use firmware_core::blob::{AlignedBytes, Blob, BlobHeader, encode};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use sitl::dynamics::Preset;
-use sitl::eval::{EvalConfig, Report, evaluate};
+use sitl::eval::{EvalConfig, Report, report};
 use sitl::pilot::PilotSpec;
 use sitl::referee::SpawnMode;
 
@@ -22,11 +22,7 @@ fn fly(raw: &[u8], spawn: SpawnMode, episodes: u32) -> Report {
         seed: 0,
         spawn: Some(spawn),
     };
-    let metrics: Vec<_> = evaluate(&spec, None, &config, false)
-        .into_iter()
-        .map(|e| e.metrics)
-        .collect();
-    Report::new(&spec, None, &config, &metrics)
+    report(&spec, None, &config)
 }
 
 fn main() {

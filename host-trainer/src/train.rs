@@ -43,7 +43,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use sitl::dynamics::Preset;
-use sitl::eval::{EvalConfig, Report, evaluate};
+use sitl::eval::{EvalConfig, Report, report};
 use sitl::files::write_atomically;
 use sitl::pilot::PilotSpec;
 use sitl::referee::SpawnMode;
@@ -309,9 +309,7 @@ fn referee_eval(blob: &[u8], preset: Preset) -> Option<Report> {
         seed: 0,
         spawn: Some(SpawnMode::Stage1),
     };
-    let episodes = evaluate(&spec, None, &config, false);
-    let metrics: Vec<_> = episodes.iter().map(|e| e.metrics.clone()).collect();
-    Some(Report::new(&spec, None, &config, &metrics))
+    Some(report(&spec, None, &config))
 }
 
 struct Paths {

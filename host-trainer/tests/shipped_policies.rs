@@ -5,7 +5,7 @@
 use firmware_core::blob::{AlignedBytes, Blob};
 use host_trainer::config::TrainConfig;
 use sitl::dynamics::Preset;
-use sitl::eval::{EvalConfig, Report, evaluate};
+use sitl::eval::{EvalConfig, report};
 use sitl::pilot::PilotSpec;
 use sitl::referee::SpawnMode;
 use std::path::Path;
@@ -44,9 +44,7 @@ fn stage1_imitation_is_its_config_and_flies_the_track() {
         seed: 0,
         spawn: Some(SpawnMode::Stage1),
     };
-    let episodes = evaluate(&spec, None, &eval, false);
-    let metrics: Vec<_> = episodes.iter().map(|e| e.metrics.clone()).collect();
-    let r = Report::new(&spec, None, &eval, &metrics);
+    let r = report(&spec, None, &eval);
     println!("{}", r.table());
     assert_eq!(r.crashes, 0);
     assert!(r.success_rate >= 0.999, "{}", r.success_rate);

@@ -49,6 +49,16 @@ impl EvalConfig {
     }
 }
 
+/// Flies the episodes of [`evaluate`] without traces and aggregates them into the Table-1
+/// row.
+pub fn report(ego: &PilotSpec, opponent: Option<&PilotSpec>, config: &EvalConfig) -> Report {
+    let metrics: Vec<_> = evaluate(ego, opponent, config, false)
+        .into_iter()
+        .map(|e| e.metrics)
+        .collect();
+    Report::new(ego, opponent, config, &metrics)
+}
+
 /// Flies `config.episodes` episodes of `ego` (against `opponent`, if any) in parallel; the
 /// result is in episode order and does not depend on the thread count. With `record`, each
 /// episode keeps its trace.

@@ -6,7 +6,7 @@ use firmware_core::baseline::{BaselineConfig, BaselineController};
 use firmware_core::track::{CrashRules, Track};
 use firmware_core::{MotorCommand, VehicleState};
 use sitl::dynamics::{Body, Preset};
-use sitl::eval::{EvalConfig, Report, evaluate};
+use sitl::eval::{EvalConfig, Report};
 use sitl::pilot::{Pilot, PilotSpec};
 use sitl::referee::{EpisodeConfig, SpawnMode, run_episode};
 use sitl::world::{World, stage1_spawn};
@@ -34,11 +34,7 @@ fn report(ego: &str, opponent: Option<&str>, preset: Preset, spawn: Option<Spawn
     };
     let ego = PilotSpec::load(ego, &preset).expect("ego");
     let opponent = opponent.map(|o| PilotSpec::load(o, &preset).expect("opponent"));
-    let metrics: Vec<_> = evaluate(&ego, opponent.as_ref(), &config, false)
-        .into_iter()
-        .map(|e| e.metrics)
-        .collect();
-    let r = Report::new(&ego, opponent.as_ref(), &config, &metrics);
+    let r = sitl::eval::report(&ego, opponent.as_ref(), &config);
     print!("{}", r.table());
     r
 }
