@@ -110,16 +110,9 @@ fn device(b: Backend) -> Result<burn::tensor::Device, String> {
 }
 
 fn row(c: char) -> Option<TableRow> {
-    Some(match c.to_ascii_uppercase() {
-        'A' => TableRow::A,
-        'B' => TableRow::B,
-        'C' => TableRow::C,
-        'D' => TableRow::D,
-        'E' => TableRow::E,
-        'F' => TableRow::F,
-        'G' => TableRow::G,
-        _ => return None,
-    })
+    TableRow::ALL
+        .into_iter()
+        .find(|r| r.letter() == c.to_ascii_uppercase())
 }
 
 fn main() -> ExitCode {
