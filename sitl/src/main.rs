@@ -6,8 +6,15 @@
 //!   episodes, in-process.
 //! - `sitl fly [--ego baseline] [--preset paper] [--seconds 45] [--cruise M_PER_S]`: one
 //!   time trial from the stage-1 spawn with every lap time printed.
+//! - `sitl race [--ego X] [--opponent Y|none] [--episodes 20] [--seed 0] [--json F]
+//!   [--tlog race.tlog] [--plot race.svg] [--realtime] [--in-process] [--signing-key K]`:
+//!   the shipped policies raced over MAVLink in lockstep, each controller its own process.
+//! - `sitl fc --blob X --sysid N --port P [--signing-key K]`: one controller as a MAVLink
+//!   endpoint (what `race` starts).
 
 use clap::{Args, Parser, Subcommand};
+use sitl::bridge::fc::FcConfig;
+use sitl::bridge::race::{Entrant, RaceConfig, Transport};
 use sitl::dynamics::Preset;
 use sitl::eval::{EvalConfig, Report, evaluate};
 use sitl::pilot::PilotSpec;
@@ -33,6 +40,93 @@ enum Command {
     Eval(EvalArgs),
     /// Fly one time trial from the stage-1 spawn and print every lap.
     Fly(FlyArgs),
+    /// Race the shipped policies (or any two pilots) over MAVLink in lockstep, each
+    /// controller its own process; print the Table-1 row, write race.tlog and race.svg.
+    Race(RaceArgs),
+    /// Run one controller as a MAVLink endpoint on a UDP port (what `race` starts).
+    Fc(FcArgs),
+}
+
+#[derive(Args)]
+struct RaceArgs {
+    /// The ego: a blob or baseline[:CRUISE_MPS[:OFFSET_M]]. Default: the shipped ego
+    /// (policies/stage2.blob, else stage1.blob, else stage1_imitation.blob, else baseline).
+    #[arg(long)]
+    ego: Option<String>,
+    /// The opponent, or "none" for a time trial. Default: the shipped opponent
+    /// (policies/stage1.blob, else the baseline).
+    #[arg(long)]
+    opponent: Option<String>,
+    #[command(flatten)]
+    common: Common,
+    /// Number of episodes.
+    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    episodes: u32,
+    /// Seed of the spawn draws; episode i uses stream i of it (as `sitl eval`).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Where drones start and restart (default: stage2 in a race, stage1 alone).
+    #[arg(long, value_parser = parse_spawn)]
+    spawn: Option<SpawnMode>,
+    /// Also write the result as JSON (`sitl eval`'s keys plus the controllers' links).
+    #[arg(long)]
+    json: Option<PathBuf>,
+    /// The telemetry log of the ground-station stream.
+    #[arg(long, default_value = "race.tlog")]
+    tlog: PathBuf,
+    /// Do not write the telemetry log.
+    #[arg(long)]
+    no_tlog: bool,
+    /// The top-down plot of episode 0 (SVG).
+    #[arg(long, default_value = "race.svg")]
+    plot: PathBuf,
+    /// Do not draw the plot.
+    #[arg(long)]
+    no_plot: bool,
+    /// Pace the race at wall-clock speed, for a ground station to watch.
+    #[arg(long)]
+    realtime: bool,
+    /// Run the controllers on threads of this process instead of as processes.
+    #[arg(long, conflicts_with = "attach")]
+    in_process: bool,
+    /// Race controllers already running (`sitl fc`) at these addresses, ego first
+    /// (e.g. 127.0.0.1:14601,127.0.0.1:14602) instead of starting them.
+    #[arg(long, value_delimiter = ',')]
+    attach: Vec<std::net::SocketAddr>,
+    /// MAVLink 2 signing on the controller links: 64 hex digits, or a passphrase (SHA-256).
+    #[arg(long)]
+    signing_key: Option<String>,
+    /// Ground-station address the race is streamed to ("none" to not stream).
+    #[arg(long, default_value = "127.0.0.1:14550")]
+    gcs: String,
+    /// Rate of the ground station's attitude and position messages (Hz, simulated time).
+    #[arg(long, default_value_t = 10.0)]
+    gcs_rate_hz: f32,
+    /// A controller that has not answered a step within this long is declared failed (ms).
+    #[arg(long, default_value_t = 2000, value_parser = clap::value_parser!(u64).range(1..=600_000))]
+    step_timeout_ms: u64,
+}
+
+#[derive(Args)]
+struct FcArgs {
+    /// The pilot: a policy blob file, or baseline[:CRUISE_MPS[:OFFSET_M]].
+    #[arg(long)]
+    blob: String,
+    /// MAVLink system id (1-249).
+    #[arg(long, value_parser = clap::value_parser!(u8).range(1..=249))]
+    sysid: u8,
+    /// UDP port on 127.0.0.1 (0: any free port; the first line printed names it).
+    #[arg(long, default_value_t = 0)]
+    port: u16,
+    /// Dynamics preset (tunes the baseline to the preset's thrust).
+    #[arg(long, default_value = "paper", value_parser = parse_preset)]
+    preset: Preset,
+    /// Require and send MAVLink 2 signatures: 64 hex digits, or a passphrase (SHA-256).
+    #[arg(long)]
+    signing_key: Option<String>,
+    /// Exit after this many seconds without a valid frame.
+    #[arg(long, default_value_t = 30)]
+    idle_timeout_s: u64,
 }
 
 #[derive(Args)]
@@ -232,13 +326,211 @@ fn fly(args: FlyArgs) -> Result<(), String> {
     Ok(())
 }
 
+/// The first of `names` in policies/ (of the working directory, else of the repository this
+/// binary was built from), else `fallback`.
+fn shipped(names: &[&str], fallback: &str) -> String {
+    let dirs = [
+        PathBuf::from("policies"),
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../policies"),
+    ];
+    dirs.iter()
+        .flat_map(|d| names.iter().map(move |n| d.join(n)))
+        .find(|p| p.is_file())
+        .map_or_else(|| fallback.to_string(), |p| p.display().to_string())
+}
+
+fn race(args: RaceArgs) -> Result<ExitCode, String> {
+    let preset = args.common.preset;
+    let ego_spec = args.ego.unwrap_or_else(|| {
+        shipped(
+            &["stage2.blob", "stage1.blob", "stage1_imitation.blob"],
+            "baseline",
+        )
+    });
+    let opponent_spec = match args.opponent.as_deref() {
+        Some("none") => None,
+        Some(o) => Some(o.to_string()),
+        None => Some(shipped(&["stage1.blob"], "baseline")),
+    };
+    let ego = PilotSpec::load(&ego_spec, &preset).map_err(|e| format!("--ego: {e}"))?;
+    let opponent = opponent_spec
+        .as_deref()
+        .map(|o| PilotSpec::load(o, &preset).map_err(|e| format!("--opponent: {e}")))
+        .transpose()?;
+    if opponent.is_none() && ego.needs_opponent() {
+        return Err(format!(
+            "--ego {ego_spec} observes an opponent; race it against one (--opponent)"
+        ));
+    }
+    let signing_key = args
+        .signing_key
+        .as_deref()
+        .map(sitl::bridge::wire::signing_key)
+        .transpose()?;
+    let gcs = match args.gcs.as_str() {
+        "none" | "" => None,
+        a => Some(
+            a.parse()
+                .map_err(|e| format!("--gcs {a}: not an address like 127.0.0.1:14550 ({e})"))?,
+        ),
+    };
+    let mut config = RaceConfig::new(EvalConfig {
+        preset,
+        episodes: args.episodes,
+        seconds: args.common.seconds,
+        seed: args.seed,
+        spawn: args.spawn,
+    });
+    config.signing_key = signing_key;
+    config.gcs = gcs;
+    config.gcs_rate_hz = args.gcs_rate_hz;
+    config.realtime = args.realtime;
+    config.tlog = !args.no_tlog;
+    config.record = !args.no_plot;
+    config.step_timeout = std::time::Duration::from_millis(args.step_timeout_ms);
+    let mut entrants = vec![Entrant {
+        role: "ego".into(),
+        spec: ego_spec,
+        pilot: ego,
+        system_id: 1,
+    }];
+    if let (Some(spec), Some(pilot)) = (opponent_spec, opponent) {
+        entrants.push(Entrant {
+            role: "opponent".into(),
+            spec,
+            pilot,
+            system_id: 2,
+        });
+    }
+    let transport = if !args.attach.is_empty() {
+        Transport::Attach(args.attach.clone())
+    } else if args.in_process {
+        Transport::Threads
+    } else {
+        Transport::Processes(
+            std::env::current_exe().map_err(|e| format!("cannot find the sitl binary: {e}"))?,
+        )
+    };
+    eprintln!(
+        "racing {} over MAVLink ({}, lockstep{}{})",
+        entrants
+            .iter()
+            .map(|e| format!("{} {} (sysid {})", e.role, e.pilot.describe(), e.system_id))
+            .collect::<Vec<_>>()
+            .join(" vs "),
+        match &transport {
+            Transport::Threads => "threads",
+            Transport::Processes(_) => "one process per controller",
+            Transport::Attach(_) => "attached controllers",
+        },
+        if config.signing_key.is_some() {
+            ", signed"
+        } else {
+            ""
+        },
+        if args.realtime { ", real time" } else { "" },
+    );
+    let outcome =
+        sitl::bridge::race::race(&entrants, &transport, &config).map_err(|e| e.to_string())?;
+    print!("{}", outcome.report.table());
+    print!("{}", outcome.summary());
+    if config.tlog {
+        sitl::files::write_atomically(&args.tlog, &outcome.tlog)
+            .map_err(|e| format!("cannot write {}: {e}", args.tlog.display()))?;
+        eprintln!(
+            "wrote {} ({} bytes)",
+            args.tlog.display(),
+            outcome.tlog.len()
+        );
+    }
+    if let (true, Some(first)) = (config.record, outcome.episodes.first()) {
+        let title = format!(
+            "{} over MAVLink, episode 0 ({} preset, seed {})",
+            entrants
+                .iter()
+                .map(|e| e.pilot.describe())
+                .collect::<Vec<_>>()
+                .join(" vs "),
+            preset.name,
+            args.seed
+        );
+        let svg = sitl::plot::top_down(
+            &config.eval.world(entrants.len() == 2).track,
+            &first.trace,
+            &title,
+        );
+        sitl::files::write_atomically(&args.plot, svg.as_bytes())
+            .map_err(|e| format!("cannot write {}: {e}", args.plot.display()))?;
+        eprintln!("wrote {}", args.plot.display());
+    }
+    if let Some(path) = &args.json {
+        sitl::files::write_atomically(path, outcome.to_json().as_bytes())
+            .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+        eprintln!("wrote {}", path.display());
+    }
+    // 3: the race ran, but a controller failed (the result says which and why).
+    Ok(if outcome.has_failures() {
+        ExitCode::from(3)
+    } else {
+        ExitCode::SUCCESS
+    })
+}
+
+fn fc(args: FcArgs) -> Result<(), String> {
+    use std::io::Write;
+    let pilot = PilotSpec::load(&args.blob, &args.preset).map_err(|e| format!("--blob: {e}"))?;
+    let signing_key = args
+        .signing_key
+        .as_deref()
+        .map(sitl::bridge::wire::signing_key)
+        .transpose()?;
+    let socket = std::net::UdpSocket::bind(("127.0.0.1", args.port))
+        .map_err(|e| format!("cannot bind 127.0.0.1:{}: {e}", args.port))?;
+    let addr = socket.local_addr().map_err(|e| e.to_string())?;
+    // The first line names the endpoint: `sitl race` reads it.
+    let mut out = std::io::stdout().lock();
+    writeln!(
+        out,
+        "sitl fc: system {} ({}) listening on {addr}",
+        args.sysid,
+        pilot.describe()
+    )
+    .and_then(|()| out.flush())
+    .map_err(|e| e.to_string())?;
+    drop(out);
+    let config = FcConfig {
+        pilot,
+        system_id: args.sysid,
+        signing_key,
+        idle_timeout: std::time::Duration::from_secs(args.idle_timeout_s),
+    };
+    let summary = sitl::bridge::fc::serve(&socket, &config).map_err(|e| e.to_string())?;
+    let l = summary.link;
+    eprintln!(
+        "sitl fc: system {} {} after {} steps, {} flights; {} frames in, {} dropped",
+        args.sysid,
+        if summary.shut_down {
+            "shut down"
+        } else {
+            "idle, exiting"
+        },
+        summary.steps,
+        summary.flights,
+        l.frames_received,
+        l.rejected() + l.stale
+    );
+    Ok(())
+}
+
 fn main() -> ExitCode {
     let result = match Cli::parse().command {
-        Command::Eval(a) => eval(a),
-        Command::Fly(a) => fly(a),
+        Command::Eval(a) => eval(a).map(|()| ExitCode::SUCCESS),
+        Command::Fly(a) => fly(a).map(|()| ExitCode::SUCCESS),
+        Command::Race(a) => race(a),
+        Command::Fc(a) => fc(a).map(|()| ExitCode::SUCCESS),
     };
     match result {
-        Ok(()) => ExitCode::SUCCESS,
+        Ok(code) => code,
         Err(e) => {
             eprintln!("error: {e}");
             ExitCode::FAILURE

@@ -16,11 +16,12 @@
 //! Gate passes and crashes come from [`World::judge`], i.e. firmware-core's gate test and
 //! crash rules; progress comes from firmware-core's [`Centerline`] and [`ArcLength`].
 
+use crate::bridge::frames::NedState;
 use crate::pilot::Pilot;
 use crate::world::{CrashCause, Drone, DroneStep, SpawnPoint, World};
 use firmware_core::math::Vec3;
 use firmware_core::track::{ArcLength, Centerline, Track};
-use firmware_core::vehicle::MotorCommand;
+use firmware_core::vehicle::{MotorCommand, VehicleState};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -380,6 +381,37 @@ pub fn episode_rng(seed: u64, index: u64) -> ChaCha8Rng {
     rng
 }
 
+/// Who commands the drones of an episode, all of them each step: in-process pilots
+/// ([`run_episode`]), or controllers behind the MAVLink bridge (`bridge::race`).
+pub trait Crew<const N: usize> {
+    /// New flights from spawns: drone `i` targets gate `targets[i]`.
+    fn reset(&mut self, targets: [usize; N]);
+    /// The motor commands for the drones' states at the start of a step.
+    fn commands(&mut self, states: &[VehicleState; N]) -> [MotorCommand; N];
+}
+
+/// In-process pilots as a crew: each sees its own state and, in a race, the other drone's,
+/// as a flight controller receives them over the MAVLink bridge: in f32 NED/FRD and back
+/// ([`crate::bridge::frames`]; the attitude moves by at most 1e-7). So `sitl eval` and a
+/// lockstep race over MAVLink (`sitl race`) fly identical trajectories.
+struct Pilots<'a, const N: usize>([&'a mut dyn Pilot; N]);
+
+impl<const N: usize> Crew<N> for Pilots<'_, N> {
+    fn reset(&mut self, targets: [usize; N]) {
+        for (p, t) in self.0.iter_mut().zip(targets) {
+            p.reset(t);
+        }
+    }
+
+    fn commands(&mut self, states: &[VehicleState; N]) -> [MotorCommand; N] {
+        let received = states.map(|s| NedState::from_enu(&s).to_enu());
+        core::array::from_fn(|i| {
+            let other = if N == 2 { received.get(1 - i) } else { None };
+            self.0[i].command(&received[i], other)
+        })
+    }
+}
+
 /// Flies one episode: `ego` alone (a time trial) or against `opponent` (a race), scored by the
 /// referee. With `record`, the trace of positions is kept.
 pub fn run_episode(
@@ -390,48 +422,41 @@ pub fn run_episode(
     index: u64,
     record: bool,
 ) -> Episode {
-    let mut rng = episode_rng(config.seed, index);
     match opponent {
-        None => run::<1>(world, [ego], config, &mut rng, record),
-        Some(o) => run::<2>(world, [ego, o], config, &mut rng, record),
+        None => run_crew(world, &mut Pilots([ego]), config, index, record),
+        Some(o) => run_crew(world, &mut Pilots([ego, o]), config, index, record),
     }
 }
 
-fn run<const N: usize>(
+/// Flies episode `index` of `config` with `crew` commanding the drones (drone 0 is the ego),
+/// scored by the referee: the same spawns, steps and scoring whoever flies.
+pub fn run_crew<const N: usize>(
     world: &World,
-    mut pilots: [&mut dyn Pilot; N],
+    crew: &mut dyn Crew<N>,
     config: &EpisodeConfig,
-    rng: &mut ChaCha8Rng,
+    index: u64,
     record: bool,
 ) -> Episode {
+    let rng = &mut episode_rng(config.seed, index);
     let mut referee = Referee::new(&world.track, world.dt_s);
     let line = *referee.centerline();
     let mut trace = Trace {
         dt_s: world.dt_s,
         ..Trace::default()
     };
-    let spawn = |pilots: &mut [&mut dyn Pilot; N], rng: &mut ChaCha8Rng| {
+    let spawn = |crew: &mut dyn Crew<N>, rng: &mut ChaCha8Rng| {
         let points = config.spawn.draw(&world.track, &line, rng);
         let drones: [Drone; N] =
             core::array::from_fn(|i| Drone::spawned(points.get(i).copied().unwrap_or(points[0])));
-        for (p, d) in pilots.iter_mut().zip(&drones) {
-            p.reset(d.progress.target);
-        }
+        crew.reset(core::array::from_fn(|i| drones[i].progress.target));
         drones
     };
-    let mut drones = spawn(&mut pilots, rng);
+    let mut drones = spawn(crew, rng);
     referee.restart(&drones);
     let steps = (config.seconds / world.dt_s).round() as u32;
     for k in 0..steps {
-        let commands: [MotorCommand; N] = core::array::from_fn(|i| {
-            let own = drones[i].body.state;
-            let other = if N == 2 {
-                drones.get(1 - i).map(|d| d.body.state)
-            } else {
-                None
-            };
-            pilots[i].command(&own, other.as_ref())
-        });
+        let states: [VehicleState; N] = core::array::from_fn(|i| drones[i].body.state);
+        let commands = crew.commands(&states);
         let results = world.step(&mut drones, &commands);
         if record {
             trace.ego_m.push(drones[0].position_m());
@@ -440,7 +465,7 @@ fn run<const N: usize>(
             }
         }
         if referee.score(&drones, &results) {
-            drones = spawn(&mut pilots, rng);
+            drones = spawn(crew, rng);
             referee.restart(&drones);
             if record {
                 trace.respawns.push(k + 1);

@@ -171,3 +171,61 @@ fn fly_prints_the_laps() {
     assert!(out.contains("laps (s)"), "{out}");
     assert!(out.contains("best lap"), "{out}");
 }
+
+#[test]
+fn race_with_the_shipped_defaults_prints_the_row_and_writes_its_files() {
+    let dir = temp("race-default");
+    std::fs::create_dir_all(&dir).unwrap();
+    let (tlog, plot, json) = (dir.join("r.tlog"), dir.join("r.svg"), dir.join("r.json"));
+    let (ok, out, err) = sitl(&[
+        "race",
+        "--episodes",
+        "2",
+        "--seconds",
+        "5",
+        "--gcs",
+        "none",
+        "--tlog",
+        tlog.to_str().unwrap(),
+        "--plot",
+        plot.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(out.contains("| success rate"), "{out}");
+    assert!(out.contains("x real time"), "{out}");
+    assert!(
+        err.contains("stage1_imitation.blob"),
+        "the shipped ego: {err}"
+    );
+    assert!(std::fs::metadata(&tlog).unwrap().len() > 0);
+    assert!(std::fs::read_to_string(&plot).unwrap().starts_with("<svg"));
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    for key in [
+        "success_rate",
+        "crash_rate",
+        "best_lap_s",
+        "sustained_overtake_rate",
+        "controllers",
+        "realtime_factor",
+    ] {
+        assert!(j.get(key).is_some(), "missing {key}");
+    }
+}
+
+#[test]
+fn race_and_fc_refuse_bad_input_clearly() {
+    let (ok, _, err) = sitl(&["race", "--ego", "/no/such.blob", "--episodes", "1"]);
+    assert!(
+        !ok && err.contains("--ego") && err.contains("/no/such.blob"),
+        "{err}"
+    );
+    let (ok, _, err) = sitl(&["race", "--gcs", "not-an-address", "--episodes", "1"]);
+    assert!(!ok && err.contains("--gcs"), "{err}");
+    let (ok, _, err) = sitl(&["race", "--signing-key", "", "--episodes", "1"]);
+    assert!(!ok && err.contains("signing key"), "{err}");
+    let (ok, _, err) = sitl(&["fc", "--blob", "baseline", "--sysid", "0"]);
+    assert!(!ok && err.contains("sysid"), "{err}");
+}
