@@ -220,6 +220,20 @@ impl ModuleVisitor for Scale<'_> {
     }
 }
 
+/// Collects the gradients of a module's parameters, flattened in visiting order.
+struct Flatten<'a> {
+    grads: &'a GradientsParams,
+    out: Vec<f32>,
+}
+
+impl ModuleVisitor for Flatten<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        if let Some(g) = self.grads.get::<D>(param.id) {
+            self.out.extend(values(g));
+        }
+    }
+}
+
 fn squared_norm<M: Module>(module: &M, grads: &GradientsParams) -> f64 {
     let mut v = SquaredNorm { grads, sum: 0.0 };
     module.visit(&mut v);
@@ -432,6 +446,37 @@ impl Learner {
             returns,
             advantages,
         }
+    }
+
+    /// The gradient of the actor's loss (clipped surrogate minus the entropy bonus) over all
+    /// of `batch` with the current networks, flattened: at the start of an update (ratio 1)
+    /// it is the policy-gradient estimate the first Adam step follows. For measuring its
+    /// signal-to-noise ratio across independent rollouts (`examples/gradient_snr.rs`).
+    pub fn actor_gradient(&self, batch: &Batch, p: &PpoConfig) -> Vec<f32> {
+        let grads = self.actor_gradients(batch, p);
+        let mut v = Flatten {
+            grads: &grads,
+            out: Vec::new(),
+        };
+        self.actor.visit(&mut v);
+        v.out
+    }
+
+    /// A learner with copies of the networks and fresh optimisers (for diagnostics that
+    /// step a copy).
+    pub fn clone_networks(&self) -> Self {
+        Self::new(
+            self.actor.clone(),
+            self.critic.clone(),
+            self.learning_rate,
+            self.device.clone(),
+        )
+    }
+
+    /// [`Learner::actor_gradient`] as burn's gradients, for an optimiser's step.
+    pub fn actor_gradients(&self, batch: &Batch, p: &PpoConfig) -> GradientsParams {
+        let idx: Vec<usize> = (0..batch.len()).collect();
+        actor_pass(&self.actor, batch, &idx, p, &self.device).grads
     }
 
     /// `epochs × minibatches` PPO steps on `batch`, minibatches drawn from `rng`.

@@ -225,7 +225,7 @@ pub fn normal(rng: &mut ChaCha8Rng) -> f32 {
 }
 
 /// The Table 1 row and architecture of a stage-1 config (feed-forward rows only here).
-fn architecture(config: &TrainConfig) -> Result<(TableRow, Architecture), TrainError> {
+pub fn architecture(config: &TrainConfig) -> Result<(TableRow, Architecture), TrainError> {
     let row = match config.run.row {
         'A' => TableRow::A,
         r => {
@@ -470,6 +470,18 @@ fn load_checkpoint(
     })
 }
 
+/// The learner (actor, critic, Adam states, learning rate) of the latest checkpoint in `out`
+/// and its iteration (for diagnostics on a run's networks).
+pub fn checkpoint_learner(
+    config: &TrainConfig,
+    out: &Path,
+    device: &Device,
+) -> Result<(u32, Learner), TrainError> {
+    let (_, arch) = architecture(config)?;
+    let state = load_checkpoint(&Paths::new(out), config, &arch, device)?;
+    Ok((state.iteration, state.learner))
+}
+
 /// The actor of the latest checkpoint in `out` (for exporting a run that has not finished,
 /// or checking a resume).
 pub fn checkpoint_actor(
@@ -676,6 +688,63 @@ fn warm_start(
     save_checkpoint(paths, state, config)
 }
 
+/// Collects `steps` steps of every env of `env` into `rollout` (cleared first): actions are
+/// `policy`'s Gaussian means (firmware-core's network, the deployed code, in parallel over
+/// envs) plus `std`-scaled noise drawn serially from `noise_rng`. `on_step` sees each step's
+/// rewards and dones.
+pub fn collect_rollout(
+    env: &mut TrainEnv,
+    policy: &Policy<'_>,
+    std: &[f32],
+    steps: usize,
+    noise_rng: &mut ChaCha8Rng,
+    rollout: &mut Rollout,
+    mut on_step: impl FnMut(&[f32], &[bool]),
+) -> Result<(), TrainError> {
+    let Policy::A(net) = policy else {
+        return Err(TrainError::Unsupported("row A only".into()));
+    };
+    let n = env.num_envs();
+    rollout.clear();
+    let mut actions = vec![0.0f32; n * ACTION_DIM];
+    let mut noise = vec![0.0f32; n * ACTION_DIM];
+    for _ in 0..steps {
+        let obs = env.observations();
+        rollout.obs.extend_from_slice(obs);
+        for z in &mut noise {
+            *z = normal(noise_rng);
+        }
+        actions
+            .par_chunks_mut(ACTION_DIM * 64)
+            .zip(obs.par_chunks(OBS_DIM * 64))
+            .zip(noise.par_chunks(ACTION_DIM * 64))
+            .for_each(|((a, o), z)| {
+                for ((a, o), z) in a
+                    .chunks_exact_mut(ACTION_DIM)
+                    .zip(o.chunks_exact(OBS_DIM))
+                    .zip(z.chunks_exact(ACTION_DIM))
+                {
+                    let Ok(o) = <&[f32; OBS_DIM]>::try_from(o) else {
+                        continue;
+                    };
+                    let mean = net.forward(o);
+                    for k in 0..ACTION_DIM {
+                        a[k] = mean[k] + std.get(k).copied().unwrap_or(0.0) * z[k];
+                    }
+                }
+            });
+        rollout.actions.extend_from_slice(&actions);
+        env.step(&actions)
+            .map_err(|e| TrainError::Unsupported(e.to_string()))?;
+        rollout.rewards.extend_from_slice(env.rewards());
+        rollout.dones.extend_from_slice(env.dones());
+        rollout.timeouts.extend_from_slice(env.timeouts());
+        on_step(env.rewards(), env.dones());
+    }
+    rollout.last_obs.extend_from_slice(env.observations());
+    Ok(())
+}
+
 /// Runs (or resumes) the training run of `config` into `options.out`.
 pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, TrainError> {
     let (_, arch) = architecture(config)?;
@@ -786,57 +855,28 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
         let std = state.learner.actor.std();
         let policy = Policy::from_payload(&arch, &payload)
             .map_err(|e| TrainError::Export(format!("actor does not load as a blob: {e}")))?;
-        let Policy::A(net) = policy else {
-            return Err(TrainError::Unsupported("row A only".into()));
-        };
-        rollout.clear();
-        let mut actions = vec![0.0f32; n * ACTION_DIM];
-        let mut noise = vec![0.0f32; n * ACTION_DIM];
-        for _ in 0..steps {
-            let obs = env.observations();
-            rollout.obs.extend_from_slice(obs);
-            for z in &mut noise {
-                *z = normal(&mut state.noise_rng);
-            }
-            actions
-                .par_chunks_mut(ACTION_DIM * 64)
-                .zip(obs.par_chunks(OBS_DIM * 64))
-                .zip(noise.par_chunks(ACTION_DIM * 64))
-                .for_each(|((a, o), z)| {
-                    for ((a, o), z) in a
-                        .chunks_exact_mut(ACTION_DIM)
-                        .zip(o.chunks_exact(OBS_DIM))
-                        .zip(z.chunks_exact(ACTION_DIM))
-                    {
-                        let Ok(o) = <&[f32; OBS_DIM]>::try_from(o) else {
-                            continue;
-                        };
-                        let mean = net.forward(o);
-                        for k in 0..ACTION_DIM {
-                            a[k] = mean[k] + std[k] * z[k];
+        collect_rollout(
+            &mut env,
+            &policy,
+            &std,
+            steps,
+            &mut state.noise_rng,
+            &mut rollout,
+            |rewards, dones| {
+                for e in 0..n {
+                    episode_return[e] += f64::from(rewards[e]);
+                    episode_len[e] += 1;
+                    if dones[e] {
+                        if finished.len() == 200 {
+                            finished.pop_front();
                         }
+                        finished.push_back((episode_return[e], episode_len[e]));
+                        episode_return[e] = 0.0;
+                        episode_len[e] = 0;
                     }
-                });
-            rollout.actions.extend_from_slice(&actions);
-            env.step(&actions)
-                .map_err(|e| TrainError::Unsupported(e.to_string()))?;
-            rollout.rewards.extend_from_slice(env.rewards());
-            rollout.dones.extend_from_slice(env.dones());
-            rollout.timeouts.extend_from_slice(env.timeouts());
-            for e in 0..n {
-                episode_return[e] += f64::from(env.rewards()[e]);
-                episode_len[e] += 1;
-                if env.dones()[e] {
-                    if finished.len() == 200 {
-                        finished.pop_front();
-                    }
-                    finished.push_back((episode_return[e], episode_len[e]));
-                    episode_return[e] = 0.0;
-                    episode_len[e] = 0;
                 }
-            }
-        }
-        rollout.last_obs.extend_from_slice(env.observations());
+            },
+        )?;
         let env_stats: EnvStats = env.take_stats();
         let rollout_s = started.elapsed().as_secs_f64();
 

@@ -71,6 +71,27 @@ fn an_update_moves_the_mean_toward_positive_advantages() {
         returns: vec![0.0; n],
         advantages,
     };
+    // The diagnostic gradient (examples/gradient_snr.rs): one value per actor parameter
+    // (the blob's weights and the four log σ), and a plain step along it moves motor 0 the
+    // way the update does.
+    let g = learner.actor_gradient(&batch, &params());
+    assert_eq!(g.len(), learner.actor.payload().len() + 4);
+    assert!(g.iter().all(|v| v.is_finite()) && g.iter().any(|v| *v != 0.0));
+    let stepped = burn::optim::SgdConfig::new().init().step(
+        1e-2,
+        learner.actor.clone(),
+        learner.actor_gradients(&batch, &params()),
+    );
+    let moved = values(stepped.mean(Tensor::from_data(
+        TensorData::new(obs.clone(), [n, 17]),
+        &device,
+    )));
+    let sgd_shift = (0..n).map(|i| moved[i * 4] - mean[i * 4]).sum::<f32>() / n as f32;
+    assert!(
+        sgd_shift > 0.0,
+        "a gradient step moved motor 0 by {sgd_shift}"
+    );
+
     let idx: Vec<usize> = (0..n).collect();
     for _ in 0..5 {
         learner.train_minibatch(&batch, &idx, &params());
