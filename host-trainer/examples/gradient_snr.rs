@@ -65,30 +65,7 @@ fn main() {
     let mut batches = Vec::new();
     for i in 0..k {
         let seed = 1_000 + i as u64;
-        let mut env = TrainEnv::new(env_config(&config, seed).expect("env config"));
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let mut rollout = Rollout::new(n, OBS_DIM);
-        // Leave the spawn states behind first: the update sees envs mid-flight.
-        collect_rollout(
-            &mut env,
-            &policy,
-            &std,
-            steps,
-            &mut rng,
-            &mut rollout,
-            |_, _| {},
-        )
-        .expect("warm-up rollout");
-        collect_rollout(
-            &mut env,
-            &policy,
-            &std,
-            steps,
-            &mut rng,
-            &mut rollout,
-            |_, _| {},
-        )
-        .expect("rollout");
+        let rollout = fresh_rollout(&policy, &std, &config, seed);
         let batch = learner.prepare(&rollout, &config.ppo);
         let mean_ret =
             batch.returns.iter().map(|&r| f64::from(r)).sum::<f64>() / batch.len() as f64;
@@ -203,29 +180,7 @@ fn main() {
         let mut cos = Vec::new();
         for i in 0..3 {
             let seed = 2_000 + i as u64;
-            let mut env = TrainEnv::new(env_config(&config, seed).expect("env config"));
-            let mut rng = ChaCha8Rng::seed_from_u64(seed);
-            let mut rollout = Rollout::new(n, OBS_DIM);
-            collect_rollout(
-                &mut env,
-                &policy,
-                &std,
-                steps,
-                &mut rng,
-                &mut rollout,
-                |_, _| {},
-            )
-            .expect("warm-up rollout");
-            collect_rollout(
-                &mut env,
-                &policy,
-                &std,
-                steps,
-                &mut rng,
-                &mut rollout,
-                |_, _| {},
-            )
-            .expect("rollout");
+            let rollout = fresh_rollout(&policy, &std, &config, seed);
             let g = stepped.actor_gradient(&stepped.prepare(&rollout, &config.ppo), &config.ppo);
             cos.push(dot(&g, &flat) / (dot(&g, &g) * dot(&flat, &flat)).sqrt());
         }
@@ -266,6 +221,28 @@ fn action_change(a: &[f32], b: &[f32], arch: &Architecture, obs: &[f32]) {
         sum.map(|s| format!("{:+.5}", s / n)),
         sq.map(|s| format!("{:.5}", (s / n).sqrt()))
     );
+}
+
+/// A rollout of the run's size from environments seeded with `seed`, after as many steps
+/// again to leave the spawn states behind (the update sees envs mid-flight).
+fn fresh_rollout(policy: &Policy<'_>, std: &[f32], config: &TrainConfig, seed: u64) -> Rollout {
+    let (n, steps) = (config.env.num_envs, config.ppo.steps_per_env);
+    let mut env = TrainEnv::new(env_config(config, seed).expect("env config"));
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let mut rollout = Rollout::new(n, OBS_DIM);
+    for _ in 0..2 {
+        collect_rollout(
+            &mut env,
+            policy,
+            std,
+            steps,
+            &mut rng,
+            &mut rollout,
+            |_, _| {},
+        )
+        .expect("rollout");
+    }
+    rollout
 }
 
 /// Several batches as one (each keeps the advantage normalisation of its own rollout).

@@ -22,6 +22,26 @@ pub struct TrainConfig {
     /// Optional imitation warm start before PPO (not in the paper).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub warm_start: Option<WarmStart>,
+    /// Optional test of every actor update on the measured return (not in the paper).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub guard: Option<Guard>,
+}
+
+/// A line search on the measured return after each PPO update (not in the paper; see
+/// docs/TRAINING.md "Why PPO leaves the student"): the updated actor, and if it is worse
+/// the update scaled by 1/2 and 1/4, must reach at least the old actor's reward per step on
+/// one rollout with common random numbers (the same fresh seeds for environments and action
+/// noise for both). If none does, the actor stays as it was, its Adam state is reset and the
+/// learning rate halves. The critic's update is always kept.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Guard {
+    /// Environments of the test rollout.
+    pub envs: usize,
+    /// Steps per env before measuring (to leave the spawns).
+    pub warmup_steps: usize,
+    /// Steps per env measured.
+    pub steps: usize,
 }
 
 /// Imitation of the classical baseline before PPO (DAgger): the actor's mean is regressed
@@ -247,6 +267,11 @@ impl TrainConfig {
                 );
             }
         }
+        if let Some(g) = &self.guard {
+            if g.envs == 0 || g.steps == 0 {
+                return bad("guard.envs and guard.steps must be positive".into());
+            }
+        }
         if !(0.0..=1.0).contains(&self.env.stage1_fraction) {
             return bad("env.stage1_fraction must be in [0, 1]".into());
         }
@@ -317,6 +342,20 @@ mod tests {
 
     const STAGE1: &str = include_str!("../configs/stage1.toml");
     const PAPER: &str = include_str!("../configs/stage1_paper.toml");
+
+    #[test]
+    fn every_config_in_configs_parses() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+        let mut n = 0;
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                TrainConfig::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+                n += 1;
+            }
+        }
+        assert!(n >= 6, "{n} configs");
+    }
 
     #[test]
     fn shipped_configs_parse() {

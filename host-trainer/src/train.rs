@@ -27,7 +27,7 @@
 //! initial episode lengths), so its trajectory differs from an uninterrupted run's from that
 //! point, its learning state does not.
 
-use crate::config::TrainConfig;
+use crate::config::{Guard, TrainConfig};
 use crate::env::{EnvConfig, EnvStats, OBS_DIM, TrainEnv};
 use crate::model::{Actor, Critic, init_rng};
 use crate::ppo::{Learner, Rollout, UpdateStats, adam};
@@ -172,6 +172,15 @@ pub struct IterationMetrics {
     /// Referee: gates passed in the 45 s.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub eval_gates: Option<u64>,
+    /// With `[guard]`: the share of the update kept (1, 0.5, 0.25, or 0 when rejected).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub guard_step: Option<f64>,
+    /// With `[guard]`: the measured reward per step of the actor before the update.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub guard_reward_before: Option<f64>,
+    /// With `[guard]`: the measured reward per step of the actor kept.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub guard_reward_after: Option<f64>,
 }
 
 /// What `checkpoints/iter_N/state.json` holds besides the networks.
@@ -745,6 +754,92 @@ pub fn collect_rollout(
     Ok(())
 }
 
+/// Reward per step of the Gaussian policy with weights `payload` and σ `std` on the guard's
+/// test rollout, the environments and the action noise seeded by `seed`.
+pub fn measured_return(
+    payload: &[f32],
+    std: &[f32],
+    arch: &Architecture,
+    config: &TrainConfig,
+    guard: &Guard,
+    seed: u64,
+) -> Result<f64, TrainError> {
+    let policy = Policy::from_payload(arch, payload)
+        .map_err(|e| TrainError::Export(format!("actor does not load as a blob: {e}")))?;
+    let mut c = env_config(config, seed)?;
+    c.num_envs = guard.envs;
+    let mut env = TrainEnv::new(c);
+    let mut rng = generator(seed, 7);
+    let mut rollout = Rollout::new(guard.envs, OBS_DIM);
+    if guard.warmup_steps > 0 {
+        collect_rollout(
+            &mut env,
+            &policy,
+            std,
+            guard.warmup_steps,
+            &mut rng,
+            &mut rollout,
+            |_, _| {},
+        )?;
+    }
+    let (mut sum, mut count) = (0.0f64, 0usize);
+    collect_rollout(
+        &mut env,
+        &policy,
+        std,
+        guard.steps,
+        &mut rng,
+        &mut rollout,
+        |r, _| {
+            sum += r.iter().map(|&x| f64::from(x)).sum::<f64>();
+            count += r.len();
+        },
+    )?;
+    Ok(sum / count.max(1) as f64)
+}
+
+/// The guard's line search after an update from `before` (weights, log σ): keeps the
+/// largest of 1, 1/2, 1/4 of the update whose measured return is at least the old one's,
+/// else restores `before`, resets the actor's Adam state and halves the learning rate.
+/// Returns (share kept, return before, return kept).
+fn guard_update(
+    learner: &mut Learner,
+    before: (&[f32], &[f32]),
+    arch: &Architecture,
+    config: &TrainConfig,
+    guard: &Guard,
+    seed: u64,
+) -> Result<(f64, f64, f64), TrainError> {
+    let (old_w, old_std) = before;
+    let new_w = learner.actor.payload();
+    let new_std = learner.actor.std();
+    let base = measured_return(old_w, old_std, arch, config, guard, seed)?;
+    for share in [1.0f32, 0.5, 0.25] {
+        let w: Vec<f32> = old_w
+            .iter()
+            .zip(&new_w)
+            .map(|(a, b)| a + share * (b - a))
+            .collect();
+        let std: Vec<f32> = old_std
+            .iter()
+            .zip(&new_std)
+            .map(|(a, b)| (a.ln() + share * (b.ln() - a.ln())).exp())
+            .collect();
+        let r = measured_return(&w, &std, arch, config, guard, seed)?;
+        if r >= base {
+            if share < 1.0 {
+                learner.actor = Actor::from_payload(arch, &w, &std, &learner.device)
+                    .ok_or_else(|| TrainError::Export("guard: weights do not fit".into()))?;
+            }
+            return Ok((f64::from(share), base, r));
+        }
+    }
+    learner.actor = Actor::from_payload(arch, old_w, old_std, &learner.device)
+        .ok_or_else(|| TrainError::Export("guard: weights do not fit".into()))?;
+    learner.actor_optim = adam();
+    learner.learning_rate = (learner.learning_rate / 2.0).max(config.ppo.min_learning_rate);
+    Ok((0.0, base, base))
+}
 /// Runs (or resumes) the training run of `config` into `options.out`.
 pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, TrainError> {
     let (_, arch) = architecture(config)?;
@@ -884,6 +979,21 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
         let t_update = Instant::now();
         let batch = state.learner.prepare(&rollout, params);
         let u: UpdateStats = state.learner.update(&batch, params, &mut state.shuffle_rng);
+        let guarded = match (&config.guard, state.learner.train_actor) {
+            (Some(g), true) => Some(guard_update(
+                &mut state.learner,
+                (&payload, &std),
+                &arch,
+                config,
+                g,
+                config
+                    .run
+                    .seed
+                    .wrapping_mul(0x2545_f491_4f6c_dd1d)
+                    .wrapping_add(u64::from(state.iteration)),
+            )?),
+            _ => None,
+        };
         let update_s = t_update.elapsed().as_secs_f64();
 
         state.iteration += 1;
@@ -926,6 +1036,11 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
                 / std_now.len().max(1) as f64,
             ..IterationMetrics::default()
         };
+        if let Some((share, before, after)) = guarded {
+            m.guard_step = Some(share);
+            m.guard_reward_before = Some(before);
+            m.guard_reward_after = Some(after);
+        }
         if state.iteration % eval_every == 0 || state.iteration == total {
             let blob = actor_blob(&state.learner.actor, config, state.iteration)?;
             if let Some(r) = referee_eval(&blob, preset) {
@@ -993,4 +1108,52 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
         blob: blob_path,
         last: state.history.last().cloned().unwrap_or_default(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// stage1.toml with a small guard, and the shipped student as its actor.
+    fn student_learner() -> (TrainConfig, Architecture, Learner) {
+        let mut config = TrainConfig::parse(include_str!("../configs/stage1.toml")).unwrap();
+        config.guard = Some(Guard {
+            envs: 64,
+            warmup_steps: 10,
+            steps: 100,
+        });
+        let (_, arch) = architecture(&config).unwrap();
+        let device = Device::flex().autodiff();
+        let blob = Path::new(env!("CARGO_MANIFEST_DIR")).join("../policies/stage1_imitation.blob");
+        let actor = actor_from_blob(&blob, &arch, &config, &device).unwrap();
+        let critic = Critic::new(&arch, &mut init_rng(1), &device);
+        (config, arch, Learner::new(actor, critic, 1e-4, device))
+    }
+
+    #[test]
+    fn the_guard_rejects_an_update_that_lowers_the_measured_return() {
+        let (config, arch, mut learner) = student_learner();
+        let guard = config.guard.clone().unwrap();
+        let (w, std) = (learner.actor.payload(), learner.actor.std());
+        // The same seed measures the same return: the comparison is common random numbers.
+        let r = measured_return(&w, &std, &arch, &config, &guard, 5).unwrap();
+        assert_eq!(
+            r,
+            measured_return(&w, &std, &arch, &config, &guard, 5).unwrap()
+        );
+        // An "update" that adds ±1e-2 to every weight (it breaks the student): rejected, the
+        // student restored, the learning rate halved.
+        let mut rng = generator(3, 0);
+        let broken: Vec<f32> = w.iter().map(|v| v + 1e-2 * normal(&mut rng)).collect();
+        learner.actor = Actor::from_payload(&arch, &broken, &std, &learner.device).unwrap();
+        let (share, before, after) =
+            guard_update(&mut learner, (&w, &std), &arch, &config, &guard, 5).unwrap();
+        assert_eq!(share, 0.0, "before {before}, after {after}");
+        assert_eq!(learner.actor.payload(), w);
+        assert_eq!(learner.learning_rate, 5e-5);
+        // No change at all is no loss: kept whole.
+        let (share, before, after) =
+            guard_update(&mut learner, (&w, &std), &arch, &config, &guard, 6).unwrap();
+        assert_eq!((share, before), (1.0, after));
+    }
 }

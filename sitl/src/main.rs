@@ -59,18 +59,8 @@ struct RaceArgs {
     opponent: Option<String>,
     #[command(flatten)]
     common: Common,
-    /// Number of episodes.
-    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=100_000))]
-    episodes: u32,
-    /// Seed of the spawn draws; episode i uses stream i of it (as `sitl eval`).
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
-    /// Where drones start and restart (default: stage2 in a race, stage1 alone).
-    #[arg(long, value_parser = parse_spawn)]
-    spawn: Option<SpawnMode>,
-    /// Also write the result as JSON (`sitl eval`'s keys plus the controllers' links).
-    #[arg(long)]
-    json: Option<PathBuf>,
+    #[command(flatten)]
+    scoring: Scoring,
     /// The telemetry log of the ground-station stream.
     #[arg(long, default_value = "race.tlog")]
     tlog: PathBuf,
@@ -140,6 +130,36 @@ struct Common {
     seconds: f32,
 }
 
+/// The episodes a pilot is scored over, as `sitl eval` and `sitl race` share them.
+#[derive(Args)]
+struct Scoring {
+    /// Number of episodes.
+    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    episodes: u32,
+    /// Seed of the spawn draws; episode i uses stream i of it.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Where drones start and restart: stage1 (time trials' default), stage2 (races'
+    /// default), or along-track.
+    #[arg(long, value_parser = parse_spawn)]
+    spawn: Option<SpawnMode>,
+    /// Also write the report as JSON to this file (`sitl race` adds the controllers' links).
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+impl Scoring {
+    fn eval_config(&self, common: &Common) -> EvalConfig {
+        EvalConfig {
+            preset: common.preset,
+            episodes: self.episodes,
+            seconds: common.seconds,
+            seed: self.seed,
+            spawn: self.spawn,
+        }
+    }
+}
+
 #[derive(Args)]
 struct EvalArgs {
     /// The ego: a policy blob file, or "baseline" for the classical controller
@@ -152,19 +172,8 @@ struct EvalArgs {
     opponent: Option<String>,
     #[command(flatten)]
     common: Common,
-    /// Number of episodes.
-    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=100_000))]
-    episodes: u32,
-    /// Seed of the spawn draws; episode i uses stream i of it.
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
-    /// Where drones start and restart: stage1 (time trials' default), stage2 (races'
-    /// default), or along-track.
-    #[arg(long, value_parser = parse_spawn)]
-    spawn: Option<SpawnMode>,
-    /// Also write the report as JSON to this file.
-    #[arg(long)]
-    json: Option<PathBuf>,
+    #[command(flatten)]
+    scoring: Scoring,
     /// Also draw the first episode from above (paths and gates) as SVG to this file.
     #[arg(long)]
     plot: Option<PathBuf>,
@@ -219,13 +228,7 @@ fn eval(args: EvalArgs) -> Result<(), String> {
             args.ego
         ));
     }
-    let config = EvalConfig {
-        preset,
-        episodes: args.episodes,
-        seconds: args.common.seconds,
-        seed: args.seed,
-        spawn: args.spawn,
-    };
+    let config = args.scoring.eval_config(&args.common);
     let started = std::time::Instant::now();
     let episodes = evaluate(&ego, opponent.as_ref(), &config, args.plot.is_some());
     if let (Some(path), Some(first)) = (&args.plot, episodes.first()) {
@@ -237,7 +240,7 @@ fn eval(args: EvalArgs) -> Result<(), String> {
                 .map(|o| format!(" vs {}", o.describe()))
                 .unwrap_or_default(),
             preset.name,
-            args.seed
+            args.scoring.seed
         );
         let svg = sitl::plot::top_down(
             &config.world(opponent.is_some()).track,
@@ -257,7 +260,7 @@ fn eval(args: EvalArgs) -> Result<(), String> {
         report.sim_seconds,
         started.elapsed().as_secs_f64()
     );
-    if let Some(path) = args.json {
+    if let Some(path) = args.scoring.json {
         sitl::files::write_atomically(&path, report.to_json().as_bytes())
             .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
         eprintln!("wrote {}", path.display());
@@ -374,13 +377,7 @@ fn race(args: RaceArgs) -> Result<ExitCode, String> {
                 .map_err(|e| format!("--gcs {a}: not an address like 127.0.0.1:14550 ({e})"))?,
         ),
     };
-    let mut config = RaceConfig::new(EvalConfig {
-        preset,
-        episodes: args.episodes,
-        seconds: args.common.seconds,
-        seed: args.seed,
-        spawn: args.spawn,
-    });
+    let mut config = RaceConfig::new(args.scoring.eval_config(&args.common));
     config.signing_key = signing_key;
     config.gcs = gcs;
     config.gcs_rate_hz = args.gcs_rate_hz;
@@ -452,7 +449,7 @@ fn race(args: RaceArgs) -> Result<ExitCode, String> {
                 .collect::<Vec<_>>()
                 .join(" vs "),
             preset.name,
-            args.seed
+            args.scoring.seed
         );
         let svg = sitl::plot::top_down(
             &config.eval.world(entrants.len() == 2).track,
@@ -463,7 +460,7 @@ fn race(args: RaceArgs) -> Result<ExitCode, String> {
             .map_err(|e| format!("cannot write {}: {e}", args.plot.display()))?;
         eprintln!("wrote {}", args.plot.display());
     }
-    if let Some(path) = &args.json {
+    if let Some(path) = &args.scoring.json {
         sitl::files::write_atomically(path, outcome.to_json().as_bytes())
             .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
         eprintln!("wrote {}", path.display());

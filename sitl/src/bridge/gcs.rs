@@ -13,10 +13,9 @@
 
 use super::frames::{GeoOrigin, NedState};
 use super::wire::Codec;
-use super::{AUTOPILOT_COMPONENT_ID, vehicle_heartbeat};
+use super::{AUTOPILOT_COMPONENT_ID, local_position, vehicle_heartbeat};
 use mavlink::dialects::common::{
-    ATTITUDE_DATA, GLOBAL_POSITION_INT_DATA, LOCAL_POSITION_NED_DATA, MavMessage,
-    MavSysStatusSensor, SYS_STATUS_DATA,
+    ATTITUDE_DATA, GLOBAL_POSITION_INT_DATA, MavMessage, MavSysStatusSensor, SYS_STATUS_DATA,
 };
 use std::net::{SocketAddr, UdpSocket};
 
@@ -164,15 +163,7 @@ fn vehicle_messages(t_ms: u32, s: &NedState, origin: &GeoOrigin) -> [MavMessage;
             pitchspeed: s.body_rates_radps.y,
             yawspeed: s.body_rates_radps.z,
         }),
-        MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
-            time_boot_ms: t_ms,
-            x: s.position_m.x,
-            y: s.position_m.y,
-            z: s.position_m.z,
-            vx: s.velocity_mps.x,
-            vy: s.velocity_mps.y,
-            vz: s.velocity_mps.z,
-        }),
+        local_position(t_ms, s),
         MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
             time_boot_ms: t_ms,
             lat,

@@ -71,16 +71,21 @@ pub fn state_messages(t_ms: u32, s: &NedState) -> [MavMessage; 2] {
             yawspeed: s.body_rates_radps.z,
             ..Default::default()
         }),
-        MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
-            time_boot_ms: t_ms,
-            x: s.position_m.x,
-            y: s.position_m.y,
-            z: s.position_m.z,
-            vx: s.velocity_mps.x,
-            vy: s.velocity_mps.y,
-            vz: s.velocity_mps.z,
-        }),
+        local_position(t_ms, s),
     ]
+}
+
+/// `LOCAL_POSITION_NED` of a state at simulated time `t_ms`.
+pub fn local_position(t_ms: u32, s: &NedState) -> MavMessage {
+    MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+        time_boot_ms: t_ms,
+        x: s.position_m.x,
+        y: s.position_m.y,
+        z: s.position_m.z,
+        vx: s.velocity_mps.x,
+        vy: s.velocity_mps.y,
+        vz: s.velocity_mps.z,
+    })
 }
 
 /// A vehicle's state assembled from its two state messages for one step.
