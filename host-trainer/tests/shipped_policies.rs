@@ -14,18 +14,28 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap()
 }
 
+/// A shipped blob, its config and the best lap the referee recorded for it (s).
+const SHIPPED: &[(&str, &str, f64)] = &[("stage1_imitation", "stage1_imitation", 10.94)];
+
 #[test]
-fn stage1_imitation_is_its_config_and_flies_the_track() {
-    let raw = std::fs::read(root().join("policies/stage1_imitation.blob")).unwrap();
+fn shipped_blobs_are_their_configs_and_fly_as_recorded() {
+    for &(blob, config, lap) in SHIPPED {
+        check(blob, config, lap);
+    }
+}
+
+fn check(name: &str, config_name: &str, recorded_lap_s: f64) {
+    let raw = std::fs::read(root().join(format!("policies/{name}.blob"))).unwrap();
     let config =
-        TrainConfig::load(&root().join("host-trainer/configs/stage1_imitation.toml")).unwrap();
+        TrainConfig::load(&root().join(format!("host-trainer/configs/{config_name}.toml")))
+            .unwrap();
     let bytes = AlignedBytes::new(&raw);
     let blob = Blob::parse(bytes.as_bytes()).unwrap();
     let p = &blob.header().provenance;
     assert_eq!(
         p.config_hash,
         config.hash(),
-        "the blob was made with another config"
+        "{name} was made with another config"
     );
     assert_eq!(p.seed, config.run.seed);
     assert_eq!(p.iterations, config.run.iterations);
@@ -36,7 +46,7 @@ fn stage1_imitation_is_its_config_and_flies_the_track() {
         config.env.velocity_scale_mps
     );
 
-    let spec = PilotSpec::from_blob("stage1_imitation", &raw).unwrap();
+    let spec = PilotSpec::from_blob(name, &raw).unwrap();
     let eval = EvalConfig {
         preset: Preset::paper(),
         episodes: 1,
@@ -50,7 +60,7 @@ fn stage1_imitation_is_its_config_and_flies_the_track() {
     assert!(r.success_rate >= 0.999, "{}", r.success_rate);
     let lap = r.best_lap_s.expect("a complete lap");
     assert!(
-        (lap - 10.94).abs() < 0.03,
-        "best lap {lap} s, recorded 10.94 s"
+        (lap - recorded_lap_s).abs() < 0.03,
+        "{name}: best lap {lap} s, recorded {recorded_lap_s} s"
     );
 }

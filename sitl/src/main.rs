@@ -50,7 +50,8 @@ enum Command {
 #[derive(Args)]
 struct RaceArgs {
     /// The ego: a blob or baseline[:CRUISE_MPS[:OFFSET_M]]. Default: the shipped ego
-    /// (policies/stage2.blob, else stage1.blob, else stage1_imitation.blob, else baseline).
+    /// (the first of policies/stage2.blob, stage1.blob, stage1_guarded.blob,
+    /// stage1_imitation.blob, else the baseline).
     #[arg(long)]
     ego: Option<String>,
     /// The opponent, or "none" for a time trial. Default: the shipped opponent
@@ -346,7 +347,12 @@ fn race(args: RaceArgs) -> Result<ExitCode, String> {
     let preset = args.common.preset;
     let ego_spec = args.ego.unwrap_or_else(|| {
         shipped(
-            &["stage2.blob", "stage1.blob", "stage1_imitation.blob"],
+            &[
+                "stage2.blob",
+                "stage1.blob",
+                "stage1_guarded.blob",
+                "stage1_imitation.blob",
+            ],
             "baseline",
         )
     });
