@@ -2,9 +2,11 @@
 """Checks `sitl race`'s ground-station link and telemetry log with pymavlink, an
 independent MAVLink implementation (pip install pymavlink).
 
-    python3 tools/gcs_check.py path/to/sitl [--seconds 10]
+    python3 tools/gcs_check.py path/to/sitl [--seconds 5]
 
-Listens on a free UDP port as a ground station would, runs a two-drone race streamed to it,
+Listens on a free UDP port as a ground station would, runs a two-drone race streamed to it
+at wall-clock speed (`--realtime`, as a ground station watches one; at full speed a race
+outruns a Python receiver and its socket drops datagrams),
 and checks: HEARTBEAT at 1 Hz (simulated) from component 1 of each drone with type
 QUADROTOR; ATTITUDE, LOCAL_POSITION_NED, GLOBAL_POSITION_INT (around the fixed origin,
 consistent with the local position) and SYS_STATUS from each; no frame pymavlink rejects.
@@ -102,7 +104,7 @@ def check_stream(msgs, seconds, label):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sitl", help="the sitl binary")
-    ap.add_argument("--seconds", type=int, default=10)
+    ap.add_argument("--seconds", type=int, default=5)
     args = ap.parse_args()
 
     port = free_port()
@@ -111,7 +113,7 @@ def main():
     tlog = os.path.join(tmp, "race.tlog")
     cmd = [args.sitl, "race", "--ego", "baseline:8:0.3", "--opponent", "baseline",
            "--episodes", "1", "--seconds", str(args.seconds), "--gcs", f"127.0.0.1:{port}",
-           "--gcs-rate-hz", "25", "--tlog", tlog, "--no-plot", "--in-process"]
+           "--gcs-rate-hz", "25", "--tlog", tlog, "--no-plot", "--in-process", "--realtime"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     msgs = drain(gcs, True, proc)
     err = proc.stderr.read().decode()
