@@ -4,7 +4,9 @@
 //! runs it on a thread.
 
 use super::wire::{Codec, LinkStats};
-use super::{AUTOPILOT_COMPONENT_ID, PartialState, ack, actuator_message, vehicle_heartbeat};
+use super::{
+    AUTOPILOT_COMPONENT_ID, PartialState, ack, actuator_message, state_time, vehicle_heartbeat,
+};
 use crate::pilot::PilotSpec;
 use firmware_core::track::Track;
 use mavlink::dialects::common::{MavCmd, MavMessage, MavResult};
@@ -62,7 +64,6 @@ pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
             if last_heartbeat.is_none_or(|t| t.elapsed() >= Duration::from_secs(1)) {
                 out.clear();
                 codec.encode(own, &vehicle_heartbeat(), &mut out);
-                summary.link.frames_sent += 1;
                 socket.send_to(&out, peer)?;
                 last_heartbeat = Some(Instant::now());
             }
@@ -76,6 +77,7 @@ pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
                 ) =>
             {
                 if last_valid.elapsed() > config.idle_timeout {
+                    summary.link.frames_sent = codec.frames_encoded();
                     return Ok(summary);
                 }
                 continue;
@@ -109,38 +111,29 @@ pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
                             }
                             let reply = ack(c.command, MavResult::MAV_RESULT_ACCEPTED, number, to);
                             codec.encode(own, &reply, &mut out);
-                            summary.link.frames_sent += 1;
                         }
                         MavCmd::MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN if c.param1 == 2.0 => {
                             let reply = ack(c.command, MavResult::MAV_RESULT_ACCEPTED, 0, to);
                             codec.encode(own, &reply, &mut out);
-                            summary.link.frames_sent += 1;
                             socket.send_to(&out, from)?;
                             summary.shut_down = true;
+                            summary.link.frames_sent = codec.frames_encoded();
                             return Ok(summary);
                         }
                         other => {
                             let reply = ack(other, MavResult::MAV_RESULT_UNSUPPORTED, 0, to);
                             codec.encode(own, &reply, &mut out);
-                            summary.link.frames_sent += 1;
                         }
                     }
                 }
-                MavMessage::ATTITUDE_QUATERNION(_) | MavMessage::LOCAL_POSITION_NED(_) => {
-                    let t = match &f.message {
-                        MavMessage::ATTITUDE_QUATERNION(a) => a.time_boot_ms,
-                        MavMessage::LOCAL_POSITION_NED(p) => p.time_boot_ms,
-                        _ => 0,
-                    };
-                    if answered.is_some_and(|a| t <= a) {
+                m => match state_time(m) {
+                    Some(t) if answered.is_some_and(|a| t <= a) => {
                         summary.link.stale += 1;
-                    } else if sender == own {
-                        own_state.absorb(&f.message);
-                    } else {
-                        opponent.absorb(&f.message);
                     }
-                }
-                _ => {}
+                    Some(_) if sender == own => own_state.absorb(m),
+                    Some(_) => opponent.absorb(m),
+                    None => {}
+                },
             }
         }
         // Step once both the own state and (if observed) the opponent's are in for a time.
@@ -150,7 +143,6 @@ pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
                 if !needs_opponent || other.is_some() {
                     let command = pilot.command(&me.to_enu(), other.as_ref());
                     codec.encode(own, &actuator_message(t, &command), &mut out);
-                    summary.link.frames_sent += 1;
                     answered = Some(t);
                     summary.steps += 1;
                 }

@@ -88,6 +88,15 @@ pub fn local_position(t_ms: u32, s: &NedState) -> MavMessage {
     })
 }
 
+/// The simulated time (ms) of a state message; `None` for any other message.
+pub fn state_time(m: &MavMessage) -> Option<u32> {
+    match m {
+        MavMessage::ATTITUDE_QUATERNION(a) => Some(a.time_boot_ms),
+        MavMessage::LOCAL_POSITION_NED(p) => Some(p.time_boot_ms),
+        _ => None,
+    }
+}
+
 /// A vehicle's state assembled from its two state messages for one step.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PartialState {
@@ -100,10 +109,8 @@ pub struct PartialState {
 impl PartialState {
     /// Takes in a state message (others are ignored); a newer time starts over.
     pub fn absorb(&mut self, m: &MavMessage) {
-        let t = match m {
-            MavMessage::ATTITUDE_QUATERNION(a) => a.time_boot_ms,
-            MavMessage::LOCAL_POSITION_NED(p) => p.time_boot_ms,
-            _ => return,
+        let Some(t) = state_time(m) else {
+            return;
         };
         if self.t_ms.is_none_or(|old| t > old) {
             *self = Self {

@@ -477,7 +477,6 @@ impl<const N: usize> Crew<N> for Lockstep<'_> {
                 &reset_command(l.system_id, gate, flight),
                 &mut out,
             );
-            l.stats.frames_sent += 1;
             self.send(i, &out);
         }
         self.collect("acknowledgement of the new flight", |_, f| {
@@ -509,7 +508,6 @@ impl<const N: usize> Crew<N> for Lockstep<'_> {
             for j in (0..ned.len()).filter(|&j| j != i).chain([i]) {
                 for m in state_messages(t, &ned[j]) {
                     l.codec.encode(ids[j], &m, &mut out);
-                    l.stats.frames_sent += 1;
                 }
             }
             self.send(i, &out);
@@ -654,7 +652,10 @@ pub fn race(
                 Transport::Attach(_) => "attached".into(),
             },
             failure: l.failure,
-            link: l.stats,
+            link: LinkStats {
+                frames_sent: l.codec.frames_encoded(),
+                ..l.stats
+            },
         })
         .collect();
     Ok(RaceOutcome {

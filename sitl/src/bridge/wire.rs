@@ -45,7 +45,7 @@ pub enum Reject {
 /// Counters of one link, as the race result reports them.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize)]
 pub struct LinkStats {
-    /// Frames sent.
+    /// Frames sent (encoded for the link: [`Codec::frames_encoded`]).
     pub frames_sent: u64,
     /// Frames received and accepted.
     pub frames_received: u64,
@@ -134,6 +134,7 @@ fn signing_now() -> u64 {
 #[derive(Clone, Debug)]
 pub struct Codec {
     sequence: u8,
+    encoded: u64,
     component_id: u8,
     signing: Option<Signing>,
 }
@@ -153,6 +154,7 @@ impl Codec {
     pub fn new(component_id: u8, key: Option<[u8; 32]>, link_id: u8) -> Self {
         Self {
             sequence: 0,
+            encoded: 0,
             component_id,
             signing: key.map(|key| Signing {
                 key,
@@ -171,6 +173,7 @@ impl Codec {
             sequence: self.sequence,
         };
         self.sequence = self.sequence.wrapping_add(1);
+        self.encoded += 1;
         let mut raw = MAVLinkV2MessageRaw::new();
         match &mut self.signing {
             None => raw.serialize_message(header, message),
@@ -186,6 +189,11 @@ impl Codec {
             }
         }
         out.extend_from_slice(raw.raw_bytes());
+    }
+
+    /// Frames encoded so far (a link's `frames_sent`).
+    pub fn frames_encoded(&self) -> u64 {
+        self.encoded
     }
 
     /// Decodes every frame of a datagram: accepted frames go to `accept` with their raw
