@@ -21,10 +21,12 @@
 use burn::optim::SgdConfig;
 use firmware_core::policy::Architecture;
 use firmware_core::policy::Policy;
-use host_trainer::config::TrainConfig;
+use host_trainer::config::{Guard, TrainConfig};
 use host_trainer::env::{OBS_DIM, TrainEnv};
 use host_trainer::ppo::{Batch, Rollout};
-use host_trainer::train::{architecture, checkpoint_learner, collect_rollout, env_config};
+use host_trainer::train::{
+    architecture, checkpoint_learner, collect_rollout, env_config, measured_return,
+};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::path::PathBuf;
@@ -260,38 +262,14 @@ fn union(batches: &[Batch]) -> Batch {
     all
 }
 
-/// Mean reward per step of the actor `payload` with noise σ `std`: 1,024 envs, 50 steps to
-/// leave the spawns, then 250 measured; the same seeds every call.
+/// Mean reward per step of the actor `payload` with noise σ `std`, measured as the trainer's
+/// `[guard]` measures it (1,024 envs, 50 steps to leave the spawns, then 250 measured), on
+/// the same seed every call: common random numbers.
 fn reward_per_step(payload: &[f32], arch: &Architecture, std: &[f32], config: &TrainConfig) -> f64 {
-    let policy = Policy::from_payload(arch, payload).expect("the actor as a blob");
-    let mut c = config.clone();
-    c.env.num_envs = 1024;
-    let mut env = TrainEnv::new(env_config(&c, 777).expect("env config"));
-    let mut rng = ChaCha8Rng::seed_from_u64(778);
-    let mut rollout = Rollout::new(c.env.num_envs, OBS_DIM);
-    collect_rollout(
-        &mut env,
-        &policy,
-        std,
-        50,
-        &mut rng,
-        &mut rollout,
-        |_, _| {},
-    )
-    .expect("rollout");
-    let (mut sum, mut count) = (0.0f64, 0usize);
-    collect_rollout(
-        &mut env,
-        &policy,
-        std,
-        250,
-        &mut rng,
-        &mut rollout,
-        |r, _| {
-            sum += r.iter().map(|&x| f64::from(x)).sum::<f64>();
-            count += r.len();
-        },
-    )
-    .expect("rollout");
-    sum / count.max(1) as f64
+    let guard = Guard {
+        envs: 1024,
+        warmup_steps: 50,
+        steps: 250,
+    };
+    measured_return(payload, std, arch, config, &guard, 777).expect("measured return")
 }
