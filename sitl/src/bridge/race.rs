@@ -358,7 +358,10 @@ struct Lockstep<'e> {
     clock_ms: u32,
     step: u64,
     flight: u32,
+    /// The wait in force: the start-up timeout until the first flight is acknowledged, the
+    /// step timeout after.
     timeout: Duration,
+    step_timeout: Duration,
     gcs: GroundStation,
     pace: Option<Instant>,
     unknown_sender: u64,
@@ -484,6 +487,8 @@ impl<const N: usize> Crew<N> for Lockstep<'_> {
                 if a.command == MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT
                     && a.result_param2 == flight as i32)
         });
+        // Every controller has answered once (or failed): from now on, steps are timed.
+        self.timeout = self.step_timeout;
     }
 
     fn commands(&mut self, states: &[VehicleState; N]) -> [MotorCommand; N] {
@@ -584,14 +589,14 @@ pub fn race(
         clock_ms: 0,
         step: 0,
         flight: 0,
-        timeout: config.step_timeout,
+        // The first contact may wait for a process to load its blob.
+        timeout: config.startup_timeout,
+        step_timeout: config.step_timeout,
         gcs,
         pace: config.realtime.then(Instant::now),
         unknown_sender: 0,
         buf: vec![0u8; 65_536],
     };
-    // The first contact may wait for a process to load its blob.
-    lockstep.timeout = config.startup_timeout;
     let episode = EpisodeConfig {
         seconds: config.eval.seconds,
         spawn: config.eval.spawn_mode(race_mode),
@@ -604,7 +609,6 @@ pub fn race(
         } else {
             run_crew::<1>(&world, &mut lockstep, &episode, u64::from(i), config.record)
         };
-        lockstep.timeout = config.step_timeout;
         episodes.push(e);
     }
     let wall_s = started.elapsed().as_secs_f64();
