@@ -25,6 +25,28 @@ pub struct TrainConfig {
     /// Optional test of every actor update on the measured return (not in the paper).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub guard: Option<Guard>,
+    /// Stage 2: race a frozen opponent (absent: the stage-1 time trial).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub race: Option<RaceSection>,
+}
+
+/// The stage-2 race (SPEC "Learning", paper section 4.2): the opponent, a frozen stage-1
+/// blob flown by firmware-core's controller, and the competition reward added to SPEC's.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RaceSection {
+    /// The opponent's blob, relative to the working directory (the repository root for the
+    /// commands in the docs). Paper: the stage-1 policy (row A).
+    pub opponent: String,
+    /// "dense" (eq. 6; rows B, C, E-G) or "sparse" (eq. 7; row D).
+    pub competition: crate::env::Competition,
+    /// Weight of the competition reward (× dt like every term). Paper: 0.5.
+    #[serde(default = "default_competition_weight")]
+    pub competition_weight: f32,
+}
+
+fn default_competition_weight() -> f32 {
+    0.5
 }
 
 /// A line search on the measured return after each PPO update (not in the paper; see
@@ -239,11 +261,42 @@ impl TrainConfig {
                 self.env.preset
             ));
         }
-        if !matches!(self.env.spawn.as_str(), "stage1" | "along-track") {
+        let race = self.race.is_some();
+        match (self.env.spawn.as_str(), race) {
+            ("stage1" | "along-track", false) | ("stage2", true) => {}
+            (s, false) => return bad(format!("env.spawn '{s}' (stage1, along-track)")),
+            (s, true) => {
+                return bad(format!(
+                    "env.spawn '{s}': a [race] starts at SPEC's stage-2 spawn, write \"stage2\""
+                ));
+            }
+        }
+        if (self.run.row == 'A') == race {
             return bad(format!(
-                "env.spawn '{}' (stage1, along-track)",
-                self.env.spawn
+                "run.row '{}' {}",
+                self.run.row,
+                if race {
+                    "is the time-trial row; a [race] trains rows B to G"
+                } else {
+                    "observes an opponent and needs a [race] section"
+                }
             ));
+        }
+        if let Some(r) = &self.race {
+            if r.opponent.is_empty() {
+                return bad("race.opponent must name a blob".into());
+            }
+            if !(r.competition_weight.is_finite() && r.competition_weight >= 0.0) {
+                return bad("race.competition_weight must be finite and >= 0".into());
+            }
+            let sparse = r.competition == crate::env::Competition::Sparse;
+            if (self.run.row == 'D') != sparse {
+                return bad(format!(
+                    "run.row '{}' with the {} competition reward: Table 1's row D is the sparse one, B, C and E-G the dense",
+                    self.run.row,
+                    if sparse { "sparse" } else { "dense" }
+                ));
+            }
         }
         if !(self.env.velocity_scale_mps.is_finite() && self.env.velocity_scale_mps > 0.0) {
             return bad("env.velocity_scale_mps must be positive".into());

@@ -5,17 +5,32 @@
 //! Stage 1 (time trial): one drone per world. Each env auto-resets: after a crash or a
 //! time-out its slot is respawned and the observation returned is the new episode's first.
 //!
+//! Stage 2 (race, [`EnvConfig::race`]): the ego and an opponent in one world, spawned as SPEC's
+//! stage 2 (a random gate k, the opponent 1 m and the ego 2 m before it, at rest). The
+//! opponent is a frozen blob flown by firmware-core's [`Controller`], the code a flight
+//! controller runs, deterministically (its Gaussian mean). An episode ends as a race restarts
+//! in the referee: on any crash. The ego's crash (a collision included) is a terminal step
+//! with the crash penalty; the opponent crashing alone is a truncation (`timeouts`, so it is
+//! bootstrapped with γ·V): the ego did nothing wrong and its future was cut short.
+//!
 //! **Reward of a step** (SPEC, paper eq. 4–5, every term × dt):
 //! - progress `λ₁ (d_{t−1} − d_t)`, both distances to the gate the drone was flying to during
 //!   the step (so a gate pass is not a jump to the next gate's distance);
 //! - command `− λ₂ ‖a_t‖ − λ₃ ‖a_t − a_{t−1}‖²` on the clipped actions the motors got;
 //! - pass `1 − ‖p_t − g‖` when the step passed gate g;
-//! - crash `− 5` when the step crashed (gate frame, ground, bounds, non-finite).
+//! - crash `− 5` when the step crashed (gate frame, ground, bounds, non-finite);
+//! - stage 2, competition `λ_c r_comp` (paper λ_c = 0.5): dense `tanh(−0.1 d_fwd)` with
+//!   `d_fwd` the opponent's position relative to the ego along the ego's body x after the step
+//!   (eq. 6), or sparse `1` when the step passed a gate while ahead of the opponent in gates
+//!   passed since the spawn (eq. 7). Like progress, it is not paid on the ego's crash step.
 
+use firmware_core::Controller;
 use firmware_core::baseline::BaselineController;
+use firmware_core::blob::AlignedBytes;
+use firmware_core::math::Vec3;
 use firmware_core::nn::ACTION_DIM;
 use firmware_core::observation::ObservationSpec;
-use firmware_core::track::Centerline;
+use firmware_core::track::{Centerline, CrashRules, Track};
 use firmware_core::vehicle::ActionMap;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -69,12 +84,14 @@ pub struct RewardTerms {
     pub pass: f64,
     /// − crashes.
     pub crash: f64,
+    /// Stage 2: the competition reward (0 in a time trial).
+    pub competition: f64,
 }
 
 impl RewardTerms {
     /// Sum of the terms.
     pub fn total(&self) -> f64 {
-        self.progress + self.command + self.smoothness + self.pass + self.crash
+        self.progress + self.command + self.smoothness + self.pass + self.crash + self.competition
     }
 
     fn add(&mut self, o: &Self) {
@@ -83,6 +100,7 @@ impl RewardTerms {
         self.smoothness += o.smoothness;
         self.pass += o.pass;
         self.crash += o.crash;
+        self.competition += o.competition;
     }
 }
 
@@ -115,6 +133,67 @@ pub struct EnvConfig {
     pub observation: ObservationSpec,
     /// Seed of the spawns and initial lengths (env i uses stream i).
     pub seed: u64,
+    /// Stage 2: race an opponent (`None`: a time trial). The spawn is then SPEC's stage-2
+    /// spawn whatever `spawn`, `spawn_speed_mps` and `stage1_fraction` say.
+    pub race: Option<RaceConfig>,
+}
+
+/// The competition reward of stage 2 (paper eq. 6 and 7).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Competition {
+    /// `tanh(−0.1 d_fwd)` every step (eq. 6; the paper's Table 1 rows B, C, E-G).
+    Dense,
+    /// `1` on a gate passed while ahead in gates (eq. 7; row D).
+    Sparse,
+}
+
+/// The opponent and the competition reward of a stage-2 environment.
+#[derive(Clone, Debug)]
+pub struct RaceConfig {
+    /// The opponent's blob (a feed-forward or recurrent policy), validated when the
+    /// environment is built.
+    pub opponent: AlignedBytes,
+    /// Which competition reward.
+    pub competition: Competition,
+    /// Its weight λ_c (× dt like every term). Paper 0.5.
+    pub competition_weight: f32,
+}
+
+/// The opponent's blob could not be flown.
+#[derive(Clone, Debug, PartialEq)]
+pub struct OpponentError(pub String);
+
+impl core::fmt::Display for OpponentError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(f, "opponent blob: {}", self.0)
+    }
+}
+
+impl std::error::Error for OpponentError {}
+
+/// `bytes` for the rest of the process, one copy per distinct blob: the opponent's
+/// [`Controller`] views its blob's weights in place (as in flash), so every env's controller
+/// borrows one copy that must outlive the environments, which are rebuilt during a run.
+fn interned(bytes: &AlignedBytes) -> &'static AlignedBytes {
+    static BLOBS: std::sync::Mutex<Vec<&'static AlignedBytes>> = std::sync::Mutex::new(Vec::new());
+    let mut blobs = BLOBS
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    if let Some(b) = blobs.iter().find(|b| **b == bytes) {
+        return b;
+    }
+    let b: &'static AlignedBytes = Box::leak(Box::new(bytes.clone()));
+    blobs.push(b);
+    b
+}
+
+/// The built race: one controller template, cloned into every slot.
+#[derive(Clone, Debug)]
+struct Race {
+    opponent: Controller<'static>,
+    competition: Competition,
+    weight: f32,
 }
 
 impl EnvConfig {
@@ -135,6 +214,7 @@ impl EnvConfig {
                 firmware_core::observation::ObservationLayout::TimeTrial17,
             ),
             seed,
+            race: None,
         }
     }
 }
@@ -152,6 +232,8 @@ pub struct EnvStats {
     pub crashes: u64,
     /// Episodes ended by the time limit.
     pub timeouts: u64,
+    /// Stage 2: episodes ended by the opponent's crash alone (truncations).
+    pub opponent_crashes: u64,
 }
 
 impl EnvStats {
@@ -172,26 +254,32 @@ impl EnvStats {
         self.gates_passed += o.gates_passed;
         self.crashes += o.crashes;
         self.timeouts += o.timeouts;
+        self.opponent_crashes += o.opponent_crashes;
     }
 }
 
 #[derive(Clone, Debug)]
 struct Slot {
-    drones: [Drone; 1],
+    /// The ego, then the opponent (stage 2 only; unused in a time trial).
+    drones: [Drone; 2],
+    /// The opponent's controller (stage 2).
+    opponent: Option<Controller<'static>>,
     previous_action: [f32; ACTION_DIM],
     steps: u32,
     rng: ChaCha8Rng,
     stats: EnvStats,
 }
 
-/// Many stage-1 worlds with their observations, rewards and episode ends.
+/// Many stage-1 or stage-2 worlds with their observations, rewards and episode ends.
 #[derive(Clone, Debug)]
 pub struct TrainEnv {
     world: World,
     line: Centerline,
     spec: ObservationSpec,
+    obs_dim: usize,
     map: ActionMap,
     config: EnvConfig,
+    race: Option<Race>,
     max_steps: u32,
     slots: Vec<Slot>,
     observations: Vec<f32>,
@@ -204,21 +292,65 @@ pub struct TrainEnv {
 pub const OBS_DIM: usize = 17;
 
 impl TrainEnv {
-    /// `config.num_envs` envs, each spawned (at a random point of its first episode when
-    /// `random_initial_episode_length`).
+    /// `config.num_envs` stage-1 envs, each spawned (at a random point of its first episode
+    /// when `random_initial_episode_length`). For a race use [`TrainEnv::with_race`].
     pub fn new(config: EnvConfig) -> Self {
-        let world = World::figure_eight(config.preset, firmware_core::track::CrashRules::STAGE1);
+        let config = EnvConfig {
+            race: None,
+            ..config
+        };
+        match Self::with_race(config) {
+            Ok(env) => env,
+            // Without a race there is no blob to refuse.
+            Err(_) => unreachable!("a time trial has no opponent"),
+        }
+    }
+
+    /// `config.num_envs` envs of a time trial or, with `config.race`, of a race; an opponent
+    /// blob that does not validate, or whose policy would need to see an opponent itself, is
+    /// refused here.
+    pub fn with_race(config: EnvConfig) -> Result<Self, OpponentError> {
+        let rules = if config.race.is_some() {
+            CrashRules::STAGE2
+        } else {
+            CrashRules::STAGE1
+        };
+        let world = World::figure_eight(config.preset, rules);
+        let race = match &config.race {
+            None => None,
+            Some(r) => {
+                let bytes = interned(&r.opponent).as_bytes();
+                let opponent = Controller::from_bytes(bytes, Track::figure_eight())
+                    .map_err(|e| OpponentError(e.to_string()))?;
+                let blob = firmware_core::blob::Blob::parse(bytes)
+                    .map_err(|e| OpponentError(e.to_string()))?;
+                if blob.header().observation.layout.needs_opponent() {
+                    return Err(OpponentError(
+                        "the opponent's policy observes an opponent itself; stage 2 races a time-trial (17-value) policy"
+                            .into(),
+                    ));
+                }
+                Some(Race {
+                    opponent,
+                    competition: r.competition,
+                    weight: r.competition_weight,
+                })
+            }
+        };
         let line = Centerline::new(&world.track);
         let max_steps = ((config.episode_s / world.dt_s).round() as u32).max(1);
         let n = config.num_envs;
+        let obs_dim = config.observation.layout.dim();
         let mut env = Self {
             world,
             line,
             spec: config.observation,
+            obs_dim,
             map: ActionMap::PAPER,
+            race,
             max_steps,
             slots: Vec::with_capacity(n),
-            observations: vec![0.0; n * OBS_DIM],
+            observations: vec![0.0; n * obs_dim],
             rewards: vec![0.0; n],
             dones: vec![false; n],
             timeouts: vec![false; n],
@@ -233,30 +365,43 @@ impl TrainEnv {
                 0
             };
             let mut slot = Slot {
-                drones: [Drone::default()],
+                drones: [Drone::default(); 2],
+                opponent: env.race.as_ref().map(|r| r.opponent.clone()),
                 previous_action: [0.0; ACTION_DIM],
                 steps: 0,
                 rng,
                 stats: EnvStats::default(),
             };
-            respawn(
-                &env.world,
-                &env.line,
-                env.config.spawn,
-                (env.config.spawn_speed_mps, env.config.stage1_fraction),
-                &mut slot,
-            );
+            respawn(&env.world, &env.line, &env.spawn_rule(), &mut slot);
             slot.steps = steps;
             env.slots.push(slot);
         }
         for (slot, obs) in env
             .slots
             .iter()
-            .zip(env.observations.chunks_exact_mut(OBS_DIM))
+            .zip(env.observations.chunks_exact_mut(obs_dim))
         {
             observe(&env.world, &env.spec, slot, obs);
         }
-        env
+        Ok(env)
+    }
+
+    fn spawn_rule(&self) -> SpawnRule {
+        SpawnRule {
+            mode: if self.race.is_some() {
+                SpawnMode::Stage2
+            } else {
+                self.config.spawn
+            },
+            max_speed_mps: self.config.spawn_speed_mps,
+            stage1_fraction: self.config.stage1_fraction,
+            race: self.race.is_some(),
+        }
+    }
+
+    /// Values per observation (17, 20 or 30: the observation spec's layout).
+    pub fn obs_dim(&self) -> usize {
+        self.obs_dim
     }
 
     /// Number of envs.
@@ -279,7 +424,7 @@ impl TrainEnv {
         self.spec
     }
 
-    /// Current observations, `num_envs × 17`, row-major.
+    /// Current observations, `num_envs × obs_dim`, row-major.
     pub fn observations(&self) -> &[f32] {
         &self.observations
     }
@@ -310,19 +455,23 @@ impl TrainEnv {
                 got: actions.len(),
             });
         }
-        let (world, spec, map, reward, max_steps) = (
+        let rule = self.spawn_rule();
+        let (world, spec, map, max_steps, obs_dim) = (
             &self.world,
             &self.spec,
             &self.map,
-            &self.config.reward,
             self.max_steps,
+            self.obs_dim,
         );
+        let reward = Rewards {
+            weights: self.config.reward,
+            competition: self.race.as_ref().map(|r| (r.competition, r.weight)),
+        };
+        let reward = &reward;
         let line = &self.line;
-        let spawn_mode = self.config.spawn;
-        let spawn_speed = (self.config.spawn_speed_mps, self.config.stage1_fraction);
         self.slots
             .par_chunks_mut(CHUNK)
-            .zip(self.observations.par_chunks_mut(CHUNK * OBS_DIM))
+            .zip(self.observations.par_chunks_mut(CHUNK * obs_dim))
             .zip(self.rewards.par_chunks_mut(CHUNK))
             .zip(self.dones.par_chunks_mut(CHUNK))
             .zip(self.timeouts.par_chunks_mut(CHUNK))
@@ -340,12 +489,12 @@ impl TrainEnv {
                     let (r, crashed, timed_out) =
                         step_slot(world, map, reward, max_steps, slot, &a);
                     if crashed || timed_out {
-                        respawn(world, line, spawn_mode, spawn_speed, slot);
+                        respawn(world, line, &rule, slot);
                     }
                     rew[i] = r;
                     done[i] = crashed || timed_out;
                     timeout[i] = timed_out;
-                    observe(world, spec, slot, &mut obs[i * OBS_DIM..(i + 1) * OBS_DIM]);
+                    observe(world, spec, slot, &mut obs[i * obs_dim..(i + 1) * obs_dim]);
                 }
             });
         Ok(())
@@ -404,45 +553,79 @@ impl core::fmt::Display for ActionShapeError {
 
 impl std::error::Error for ActionShapeError {}
 
-/// A new episode in `slot`: a spawn drawn from its generator, the stage-1 spawn with
-/// probability `stage1_fraction`, otherwise `mode`'s, moving along its heading at a speed
-/// drawn from [0, `max_speed_mps`] when that is positive; the previous action zeroed.
-fn respawn(
-    world: &World,
-    line: &Centerline,
+/// How an env respawns.
+#[derive(Clone, Copy, Debug)]
+struct SpawnRule {
     mode: SpawnMode,
-    (max_speed_mps, stage1_fraction): (f32, f32),
-    slot: &mut Slot,
-) {
-    let stage1 = stage1_fraction > 0.0 && slot.rng.random::<f32>() < stage1_fraction;
-    let mode = if stage1 { SpawnMode::Stage1 } else { mode };
-    let [mut spawn, _] = mode.draw(&world.track, line, &mut slot.rng);
-    if max_speed_mps > 0.0 && !stage1 {
-        let speed = slot.rng.random_range(0.0..max_speed_mps);
-        let forward = spawn
-            .state
-            .attitude
-            .rotate(firmware_core::math::Vec3::new(1.0, 0.0, 0.0));
+    max_speed_mps: f32,
+    stage1_fraction: f32,
+    race: bool,
+}
+
+/// A new episode in `slot`: a spawn drawn from its generator. In a race, SPEC's stage-2 spawn
+/// for both drones, the opponent's controller reset to their gate. In a time trial, the
+/// stage-1 spawn with probability `stage1_fraction`, otherwise `mode`'s, moving along its
+/// heading at a speed drawn from [0, `max_speed_mps`] when that is positive. The previous
+/// action zeroed.
+fn respawn(world: &World, line: &Centerline, rule: &SpawnRule, slot: &mut Slot) {
+    let stage1 =
+        !rule.race && rule.stage1_fraction > 0.0 && slot.rng.random::<f32>() < rule.stage1_fraction;
+    let mode = if stage1 { SpawnMode::Stage1 } else { rule.mode };
+    let [mut spawn, opponent] = mode.draw(&world.track, line, &mut slot.rng);
+    if rule.max_speed_mps > 0.0 && !stage1 && !rule.race {
+        let speed = slot.rng.random_range(0.0..rule.max_speed_mps);
+        let forward = spawn.state.attitude.rotate(Vec3::new(1.0, 0.0, 0.0));
         spawn.state.velocity_mps = forward.scale(speed);
     }
-    slot.drones = [Drone::spawned(spawn)];
+    slot.drones = [Drone::spawned(spawn), Drone::spawned(opponent)];
+    if let Some(c) = &mut slot.opponent {
+        c.reset(opponent.target_gate);
+    }
     slot.previous_action = [0.0; ACTION_DIM];
     slot.steps = 0;
+}
+
+/// The reward's weights and, in a race, the competition term and its weight.
+#[derive(Clone, Copy, Debug)]
+struct Rewards {
+    weights: RewardWeights,
+    competition: Option<(Competition, f32)>,
+}
+
+/// `tanh(−0.1 d_fwd)` (paper eq. 6): `d_fwd` is the opponent's position relative to the ego
+/// along the ego's body x (m); positive when the ego leads.
+pub fn dense_competition(ego: &firmware_core::vehicle::VehicleState, opponent_m: Vec3) -> f32 {
+    let rel_body = ego.attitude.conjugate().rotate(opponent_m - ego.position_m);
+    (-0.1 * rel_body.x).tanh()
 }
 
 /// Steps one env; returns (reward, crashed, timed out).
 fn step_slot(
     world: &World,
     map: &ActionMap,
-    w: &RewardWeights,
+    rewards: &Rewards,
     max_steps: u32,
     slot: &mut Slot,
     action: &[f32; ACTION_DIM],
 ) -> (f32, bool, bool) {
+    let w = &rewards.weights;
     let d = &slot.drones[0];
     let gate = world.track.gate(d.progress.target).center_m;
     let before = d.position_m();
-    let [result] = world.step(&mut slot.drones, &[map.command(action)]);
+    let (result, opponent_crashed) = match &mut slot.opponent {
+        Some(c) => {
+            let [ego, opp] = &slot.drones;
+            // Both commands from the states before the step, as the referee's lockstep does.
+            let opp_command = c.step(&opp.body.state, Some(&ego.body.state)).command;
+            let [e, o] = world.step(&mut slot.drones, &[map.command(action), opp_command]);
+            (e, o.crash.is_some())
+        }
+        None => {
+            let [ego, _] = &mut slot.drones;
+            let [e] = world.step(core::array::from_mut(ego), &[map.command(action)]);
+            (e, false)
+        }
+    };
     let after = slot.drones[0].position_m();
     let dt = world.dt_s;
     let norm = |v: &[f32; ACTION_DIM]| v.iter().map(|x| x * x).sum::<f32>();
@@ -458,25 +641,46 @@ fn step_slot(
     } else {
         terms.progress =
             f64::from(dt * w.progress * ((before - gate).norm() - (after - gate).norm()));
-        if result.passed_gate().is_some() {
+        let passed = result.passed_gate().is_some();
+        if passed {
             terms.pass = f64::from(dt * w.pass * (1.0 - (after - gate).norm()));
             slot.stats.gates_passed += 1;
         }
+        let [ego, opp] = &slot.drones;
+        terms.competition = match rewards.competition {
+            None => 0.0,
+            Some((Competition::Dense, weight)) => {
+                f64::from(dt * weight * dense_competition(&ego.body.state, opp.position_m()))
+            }
+            Some((Competition::Sparse, weight)) => {
+                let ahead = ego.progress.gates_passed > opp.progress.gates_passed;
+                if passed && ahead {
+                    f64::from(dt * weight)
+                } else {
+                    0.0
+                }
+            }
+        };
     }
     slot.previous_action = *action;
     slot.steps += 1;
-    let timed_out = !crashed && slot.steps >= max_steps;
+    // The opponent crashing alone cuts the episode short without the ego's doing: a
+    // truncation, bootstrapped like a time-out.
+    let opponent_only = !crashed && opponent_crashed;
+    let timed_out = !crashed && (slot.steps >= max_steps || opponent_only);
     slot.stats.steps += 1;
     slot.stats.crashes += u64::from(crashed);
-    slot.stats.timeouts += u64::from(timed_out);
+    slot.stats.timeouts += u64::from(timed_out && !opponent_only);
+    slot.stats.opponent_crashes += u64::from(opponent_only);
     slot.stats.terms.add(&terms);
     (terms.total() as f32, crashed, timed_out)
 }
 
 fn observe(world: &World, spec: &ObservationSpec, slot: &Slot, out: &mut [f32]) {
-    let d = &slot.drones[0];
+    let [d, opp] = &slot.drones;
     let gate = world.track.gate(d.progress.target);
-    match spec.observe(&d.body.state, &gate, &slot.previous_action, None) {
+    let opponent = slot.opponent.as_ref().map(|_| &opp.body.state);
+    match spec.observe(&d.body.state, &gate, &slot.previous_action, opponent) {
         Ok(o) => out.copy_from_slice(o.as_slice()),
         // Only a diverged state fails, and a diverged state is a crash that was respawned.
         Err(_) => out.fill(0.0),

@@ -159,8 +159,20 @@ fn main() -> ExitCode {
                 m.samples
             );
             if let Some(sr) = m.eval_success_rate {
+                let what = match &cfg.race {
+                    None => "45 s from the stage-1 spawn".to_string(),
+                    Some(r) => format!(
+                        "{} races of 45 s against {}",
+                        host_trainer::train::EVAL_RACES,
+                        r.opponent
+                    ),
+                };
+                let overtakes = match (m.eval_overtakes, m.eval_sustained_overtakes) {
+                    (Some(o), Some(s)) => format!(", {o} overtakes ({s} sustained)"),
+                    _ => String::new(),
+                };
                 println!(
-                    "referee (45 s from the stage-1 spawn): success {:.3}, crashes {:.3} /s, best lap {}",
+                    "referee ({what}): success {:.3}, crashes {:.3} /s, best lap {}{overtakes}",
                     sr,
                     m.eval_crash_rate.unwrap_or(0.0),
                     m.eval_best_lap_s

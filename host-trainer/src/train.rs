@@ -28,11 +28,12 @@
 //! point, its learning state does not.
 
 use crate::config::{Guard, TrainConfig};
-use crate::env::{EnvConfig, EnvStats, OBS_DIM, TrainEnv};
+use crate::env::{EnvConfig, EnvStats, RaceConfig, TrainEnv};
 use crate::model::{Actor, Critic, init_rng};
 use crate::ppo::{Learner, Rollout, UpdateStats, adam};
 use burn::module::Module;
 use burn::tensor::Device;
+use firmware_core::blob::AlignedBytes;
 use firmware_core::blob::{BlobHeader, Provenance, encode};
 use firmware_core::nn::ACTION_DIM;
 use firmware_core::observation::{ObservationLayout, ObservationSpec};
@@ -131,6 +132,12 @@ pub struct IterationMetrics {
     pub reward_pass: f64,
     /// Mean crash term per env-step.
     pub reward_crash: f64,
+    /// Races only: mean competition term per env-step.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub reward_competition: Option<f64>,
+    /// Races only: episodes cut short by the opponent's crash, per simulated second.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub opponent_crash_rate_per_s: Option<f64>,
     /// Mean return of the episodes that ended recently (last 200).
     pub episode_return: f64,
     /// Mean length of those episodes (s).
@@ -160,7 +167,8 @@ pub struct IterationMetrics {
     /// Minibatches skipped for a non-finite loss or gradient.
     #[serde(default)]
     pub skipped_minibatches: u32,
-    /// Referee, deterministic policy, 45 s from the stage-1 spawn: success rate.
+    /// Referee, deterministic policy, 45 s from the stage-1 spawn (a time trial) or
+    /// [`EVAL_RACES`] 45 s races from stage-2 spawns (a race): success rate.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub eval_success_rate: Option<f64>,
     /// Referee: crashes per second.
@@ -172,6 +180,12 @@ pub struct IterationMetrics {
     /// Referee: gates passed in the 45 s.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub eval_gates: Option<u64>,
+    /// Referee, races only: overtakes of the opponent.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub eval_overtakes: Option<u64>,
+    /// Referee, races only: overtakes whose lead was held 2 s.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub eval_sustained_overtakes: Option<u64>,
     /// With `[guard]`: the share of the update kept (1, 0.5, 0.25, or 0 when rejected).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub guard_step: Option<f64>,
@@ -233,17 +247,34 @@ pub fn normal(rng: &mut ChaCha8Rng) -> f32 {
     (-2.0 * u1.ln()).sqrt() * (core::f32::consts::TAU * u2).cos()
 }
 
-/// The Table 1 row and architecture of a stage-1 config (feed-forward rows only here).
+/// The Table 1 row and architecture of a config: the feed-forward rows A to D (A in a time
+/// trial, B to D in a race); the recurrent rows E to G come with recurrent PPO.
 pub fn architecture(config: &TrainConfig) -> Result<(TableRow, Architecture), TrainError> {
     let row = match config.run.row {
         'A' => TableRow::A,
+        'B' => TableRow::B,
+        'C' => TableRow::C,
+        'D' => TableRow::D,
+        r @ ('E' | 'F' | 'G') => {
+            return Err(TrainError::Unsupported(format!(
+                "run.row '{r}': the recurrent rows need recurrent PPO, which this trainer does not have yet"
+            )));
+        }
         r => {
             return Err(TrainError::Unsupported(format!(
-                "run.row '{r}': this trainer trains the stage-1 row A; the multi-agent rows come with recurrent PPO (issue stage2)"
+                "run.row '{r}': Table 1 has rows A to G"
             )));
         }
     };
-    Ok((row, Architecture::table1(row)))
+    let arch = Architecture::table1(row);
+    Ok((row, arch))
+}
+
+/// The environment of a config, seeded with `seed`: a time trial, or a race against the
+/// config's opponent (read and validated here).
+pub fn make_env(config: &TrainConfig, seed: u64) -> Result<TrainEnv, TrainError> {
+    TrainEnv::with_race(env_config(config, seed)?)
+        .map_err(|e| TrainError::Unsupported(e.to_string()))
 }
 
 /// The training environment of a config, seeded with `seed`.
@@ -263,6 +294,19 @@ pub fn env_config(config: &TrainConfig, seed: u64) -> Result<EnvConfig, TrainErr
         reward: config.reward,
         observation: observation_spec(config),
         seed,
+        race: match &config.race {
+            None => None,
+            Some(r) => {
+                let raw = std::fs::read(&r.opponent).map_err(|e| {
+                    TrainError::Unsupported(format!("race.opponent '{}': {e}", r.opponent))
+                })?;
+                Some(RaceConfig {
+                    opponent: AlignedBytes::new(&raw),
+                    competition: r.competition,
+                    competition_weight: r.competition_weight,
+                })
+            }
+        },
     })
 }
 
@@ -272,9 +316,15 @@ pub fn hover_action(config: &TrainConfig) -> f32 {
     firmware_core::vehicle::ActionMap::PAPER.action_for_rpm(preset.hover_rpm())
 }
 
-/// The observation spec of a config: the paper's 17 with the configured velocity scale.
+/// The observation spec of a config: the paper's layout for its row (17 values for A, 20
+/// for B, 30 for the others) with the configured velocity scale.
 pub fn observation_spec(config: &TrainConfig) -> ObservationSpec {
-    let mut spec = ObservationSpec::paper(ObservationLayout::TimeTrial17);
+    let layout = match config.run.row {
+        'A' => ObservationLayout::TimeTrial17,
+        'B' => ObservationLayout::OpponentPosition20,
+        _ => ObservationLayout::FullOpponent30,
+    };
+    let mut spec = ObservationSpec::paper(layout);
     spec.velocity_scale_mps = config.env.velocity_scale_mps;
     spec
 }
@@ -306,19 +356,31 @@ pub fn actor_blob(
         .map_err(|e| TrainError::Export(format!("blob export failed: {e:?}")))
 }
 
-/// The referee's verdict on the deterministic policy: one 45 s time trial from the stage-1
-/// spawn (the evaluation of issue "stage1"; the fixed spawn and the deterministic policy make
-/// every such episode identical, so one is enough).
-fn referee_eval(blob: &[u8], preset: Preset) -> Option<Report> {
+/// Races the in-training evaluation flies: the stage-2 spawn is drawn per race.
+pub const EVAL_RACES: u32 = 4;
+
+/// The referee's verdict on the deterministic policy. A time trial: one 45 s episode from the
+/// stage-1 spawn (the evaluation of issue "stage1"; the fixed spawn and the deterministic
+/// policy make every such episode identical, so one is enough). A race: [`EVAL_RACES`] 45 s
+/// races against the config's opponent from stage-2 spawns (seeds 0..).
+fn referee_eval(blob: &[u8], preset: Preset, config: &TrainConfig) -> Option<Report> {
     let spec = PilotSpec::from_blob("training", blob).ok()?;
-    let config = EvalConfig {
+    let opponent = match &config.race {
+        None => None,
+        Some(r) => Some(PilotSpec::load(&r.opponent, &preset).ok()?),
+    };
+    let eval = EvalConfig {
         preset,
-        episodes: 1,
+        episodes: if opponent.is_some() { EVAL_RACES } else { 1 },
         seconds: 45.0,
         seed: 0,
-        spawn: Some(SpawnMode::Stage1),
+        spawn: Some(if opponent.is_some() {
+            SpawnMode::Stage2
+        } else {
+            SpawnMode::Stage1
+        }),
     };
-    Some(report(&spec, None, &config))
+    Some(report(&spec, opponent.as_ref(), &eval))
 }
 
 struct Paths {
@@ -550,6 +612,7 @@ pub fn learning_curves(name: &str, history: &[IterationMetrics]) -> String {
                 series("progress", &|m| Some(m.reward_progress)),
                 series("pass", &|m| Some(m.reward_pass)),
                 series("crash", &|m| Some(m.reward_crash)),
+                series("competition (races)", &|m| m.reward_competition),
                 series("command+smooth", &|m| {
                     Some(m.reward_command + m.reward_smoothness)
                 }),
@@ -561,7 +624,7 @@ pub fn learning_curves(name: &str, history: &[IterationMetrics]) -> String {
             "gates passed / encountered",
             &[
                 series("rollout (noisy policy)", &|m| Some(m.success_rate)),
-                series("referee, 45 s from stage-1 spawn", &|m| m.eval_success_rate),
+                series("referee (deterministic policy)", &|m| m.eval_success_rate),
             ],
         ),
         line_chart(
@@ -682,7 +745,11 @@ fn warm_start(
         device.clone(),
     );
     let preset = Preset::by_name(&config.env.preset).unwrap_or_else(Preset::paper);
-    if let Some(r) = referee_eval(&actor_blob(&state.learner.actor, config, 0)?, preset) {
+    if let Some(r) = referee_eval(
+        &actor_blob(&state.learner.actor, config, 0)?,
+        preset,
+        config,
+    ) {
         println!(
             "imitation done in {elapsed:.0} s; the student, referee 45 s from the stage-1 spawn: success {:.3}, crashes {:.3}/s, best lap {}",
             r.success_rate,
@@ -710,9 +777,18 @@ pub fn collect_rollout(
     rollout: &mut Rollout,
     mut on_step: impl FnMut(&[f32], &[bool]),
 ) -> Result<(), TrainError> {
-    let Policy::A(net) = policy else {
-        return Err(TrainError::Unsupported("row A only".into()));
-    };
+    if policy.is_recurrent() {
+        return Err(TrainError::Unsupported(
+            "recurrent policies need recurrent PPO".into(),
+        ));
+    }
+    let obs_dim = env.obs_dim();
+    if policy.obs_dim() != obs_dim {
+        return Err(TrainError::Unsupported(format!(
+            "the policy observes {} values, the environment gives {obs_dim}",
+            policy.obs_dim()
+        )));
+    }
     let n = env.num_envs();
     rollout.clear();
     let mut actions = vec![0.0f32; n * ACTION_DIM];
@@ -725,18 +801,17 @@ pub fn collect_rollout(
         }
         actions
             .par_chunks_mut(ACTION_DIM * 64)
-            .zip(obs.par_chunks(OBS_DIM * 64))
+            .zip(obs.par_chunks(obs_dim * 64))
             .zip(noise.par_chunks(ACTION_DIM * 64))
             .for_each(|((a, o), z)| {
                 for ((a, o), z) in a
                     .chunks_exact_mut(ACTION_DIM)
-                    .zip(o.chunks_exact(OBS_DIM))
+                    .zip(o.chunks_exact(obs_dim))
                     .zip(z.chunks_exact(ACTION_DIM))
                 {
-                    let Ok(o) = <&[f32; OBS_DIM]>::try_from(o) else {
+                    let Some(mean) = feed_forward_mean(policy, o) else {
                         continue;
                     };
-                    let mean = net.forward(o);
                     for k in 0..ACTION_DIM {
                         a[k] = mean[k] + std.get(k).copied().unwrap_or(0.0) * z[k];
                     }
@@ -754,6 +829,17 @@ pub fn collect_rollout(
     Ok(())
 }
 
+/// The Gaussian mean of a feed-forward policy for one observation (`None` for a recurrent
+/// policy or an observation of the wrong size).
+fn feed_forward_mean(policy: &Policy<'_>, obs: &[f32]) -> Option<[f32; ACTION_DIM]> {
+    match policy {
+        Policy::A(p) => Some(p.forward(<&[f32; 17]>::try_from(obs).ok()?)),
+        Policy::B(p) => Some(p.forward(<&[f32; 20]>::try_from(obs).ok()?)),
+        Policy::C(p) => Some(p.forward(<&[f32; 30]>::try_from(obs).ok()?)),
+        Policy::E(_) | Policy::F(_) | Policy::G(_) => None,
+    }
+}
+
 /// Reward per step of the Gaussian policy with weights `payload` and σ `std` on the guard's
 /// test rollout, the environments and the action noise seeded by `seed`.
 pub fn measured_return(
@@ -768,9 +854,9 @@ pub fn measured_return(
         .map_err(|e| TrainError::Export(format!("actor does not load as a blob: {e}")))?;
     let mut c = env_config(config, seed)?;
     c.num_envs = guard.envs;
-    let mut env = TrainEnv::new(c);
+    let mut env = TrainEnv::with_race(c).map_err(|e| TrainError::Unsupported(e.to_string()))?;
     let mut rng = generator(seed, 7);
-    let mut rollout = Rollout::new(guard.envs, OBS_DIM);
+    let mut rollout = Rollout::new(guard.envs, env.obs_dim());
     if guard.warmup_steps > 0 {
         collect_rollout(
             &mut env,
@@ -843,11 +929,23 @@ fn guard_update(
 /// Runs (or resumes) the training run of `config` into `options.out`.
 pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, TrainError> {
     let (_, arch) = architecture(config)?;
-    if usize::from(arch.obs_dim) != OBS_DIM {
+    if config.race.is_some() && config.warm_start.is_some() {
         return Err(TrainError::Unsupported(
-            "the stage-1 environment has 17 observations".into(),
+            "[warm_start] imitates the baseline in a time trial; a [race] config cannot use it"
+                .into(),
         ));
     }
+    // Refuse an unreadable opponent before any work.
+    make_env(
+        &TrainConfig {
+            env: crate::config::EnvSection {
+                num_envs: 1,
+                ..config.env.clone()
+            },
+            ..config.clone()
+        },
+        0,
+    )?;
     let paths = Paths::new(&options.out);
     let device = options.device.clone();
     let mut state = if options.resume {
@@ -910,12 +1008,12 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
         .run
         .seed
         .wrapping_add(u64::from(state.iteration).wrapping_mul(0x9e37_79b9_7f4a_7c15));
-    let mut env = TrainEnv::new(env_config(config, env_seed)?);
+    let mut env = make_env(config, env_seed)?;
     let n = env.num_envs();
     let steps = config.ppo.steps_per_env;
     let params = &config.ppo;
     let dt = f64::from(env.dt_s());
-    let mut rollout = Rollout::new(n, OBS_DIM);
+    let mut rollout = Rollout::new(n, env.obs_dim());
     let mut episode_return = vec![0.0f64; n];
     let mut episode_len = vec![0u32; n];
     let mut finished: VecDeque<(f64, u32)> = VecDeque::with_capacity(200);
@@ -1017,6 +1115,14 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
             reward_smoothness: per_step(env_stats.terms.smoothness),
             reward_pass: per_step(env_stats.terms.pass),
             reward_crash: per_step(env_stats.terms.crash),
+            reward_competition: config
+                .race
+                .as_ref()
+                .map(|_| per_step(env_stats.terms.competition)),
+            opponent_crash_rate_per_s: config
+                .race
+                .as_ref()
+                .map(|_| env_stats.opponent_crashes as f64 / sim_s.max(1e-9)),
             episode_return: finished.iter().map(|e| e.0).sum::<f64>()
                 / finished.len().max(1) as f64,
             episode_s: finished.iter().map(|e| f64::from(e.1)).sum::<f64>() * dt
@@ -1043,11 +1149,15 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
         }
         if state.iteration % eval_every == 0 || state.iteration == total {
             let blob = actor_blob(&state.learner.actor, config, state.iteration)?;
-            if let Some(r) = referee_eval(&blob, preset) {
+            if let Some(r) = referee_eval(&blob, preset, config) {
                 m.eval_success_rate = Some(r.success_rate);
                 m.eval_crash_rate = Some(r.crash_rate);
                 m.eval_best_lap_s = r.best_lap_s;
                 m.eval_gates = Some(r.gates_passed);
+                if config.race.is_some() {
+                    m.eval_overtakes = Some(r.overtakes);
+                    m.eval_sustained_overtakes = Some(r.sustained_overtakes);
+                }
             }
             let lap = m
                 .eval_best_lap_s
