@@ -16,5 +16,6 @@ pub mod export;
 pub mod imitation;
 pub mod model;
 pub mod ppo;
+pub mod recurrent;
 pub mod rslrl;
 pub mod train;

@@ -69,7 +69,7 @@ impl Mlp {
 }
 
 /// A `burn` linear layer from a PyTorch-layout weight `[out, in]` (row-major) and bias.
-fn linear_from_pytorch(
+pub(crate) fn linear_from_pytorch(
     w_out_in: &[f32],
     bias: &[f32],
     fan_in: usize,
