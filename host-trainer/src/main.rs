@@ -192,9 +192,7 @@ fn main() -> ExitCode {
             let cfg =
                 TrainConfig::load(&config).map_err(|e| format!("{}: {e}", config.display()))?;
             let device = burn::tensor::Device::flex().autodiff();
-            let (iteration, actor) = host_trainer::train::checkpoint_actor(&cfg, &out, &device)
-                .map_err(|e| e.to_string())?;
-            let bytes = host_trainer::train::actor_blob(&actor, &cfg, iteration)
+            let (iteration, bytes) = host_trainer::train::checkpoint_blob(&cfg, &out, &device)
                 .map_err(|e| e.to_string())?;
             sitl::files::write_atomically(&blob, &bytes)
                 .map_err(|e| format!("{}: {e}", blob.display()))?;

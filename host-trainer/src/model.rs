@@ -54,6 +54,17 @@ impl Mlp {
         Self { layers }
     }
 
+    /// The same network with every output's bias set to `value`.
+    pub fn with_output_bias(mut self, value: f32) -> Self {
+        if let Some(last) = self.layers.last_mut() {
+            let n = last.weight.val().dims()[1];
+            let device = last.weight.val().device();
+            let b = Tensor::<1>::from_data(TensorData::new(vec![value; n], [n]), &device);
+            last.bias = Some(Param::from_tensor(b));
+        }
+        self
+    }
+
     /// Forward pass over a batch `[n, in]`.
     pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
         let last = self.layers.len().saturating_sub(1);
@@ -137,12 +148,7 @@ impl Actor {
     /// of an all-zero hidden layer (e.g. the hover action, so that the first rollouts hover
     /// instead of falling).
     pub fn with_output_bias(mut self, action: f32) -> Self {
-        if let Some(last) = self.mlp.layers.last_mut() {
-            let n = last.weight.val().dims()[1];
-            let device = last.weight.val().device();
-            let b = Tensor::<1>::from_data(TensorData::new(vec![action; n], [n]), &device);
-            last.bias = Some(Param::from_tensor(b));
-        }
+        self.mlp = self.mlp.with_output_bias(action);
         self
     }
 

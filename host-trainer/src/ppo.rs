@@ -14,13 +14,22 @@
 //! Departures from RSL-RL, each documented in docs/TRAINING.md: a fresh minibatch permutation
 //! every epoch (RSL-RL draws one per update), a log-parameterised σ (RSL-RL's default stores σ
 //! itself, which can go negative).
+//!
+//! **Recurrent PPO** is the same update on [`crate::recurrent`]'s networks ([`PpoNet`] says
+//! how a network computes its outputs for a minibatch): a minibatch is a set of whole env
+//! windows (RSL-RL's recurrent generator splits by env), the networks run over each window
+//! from the recurrent states stored when the rollout began, with the state zeroed after an
+//! episode end, and the gradients flow back through the window (truncated backpropagation
+//! through time over `steps_per_env` steps).
 
 use crate::config::PpoConfig;
 use crate::model::{Actor, Critic, values};
+use crate::recurrent::{LstmState, RecurrentActor, RecurrentCritic};
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::nn::ACTION_DIM;
+use firmware_core::policy::Architecture;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 
@@ -46,6 +55,15 @@ pub struct Rollout {
     pub timeouts: Vec<bool>,
     /// Observations after the last step, `envs × obs_dim`.
     pub last_obs: Vec<f32>,
+    /// Recurrent policies: the actor's state in every env when the window began, flat
+    /// (`envs × width`, see [`LstmState::from_flat`]); empty for a feed-forward policy.
+    pub actor_h0: Vec<f32>,
+    /// Recurrent policies: the critic's state in every env when the window began (the
+    /// previous batch's [`Sequences::critic_next`]; empty means zero).
+    pub critic_h0: Vec<f32>,
+    /// Recurrent policies: the policy's state in every env, carried from one window to the
+    /// next by the rollout (zeroed at episode ends, as the controller does); not cleared.
+    pub memory: Vec<firmware_core::policy::PolicyState>,
 }
 
 impl Rollout {
@@ -71,6 +89,353 @@ impl Rollout {
         self.dones.clear();
         self.timeouts.clear();
         self.last_obs.clear();
+        self.actor_h0.clear();
+    }
+}
+
+/// The window structure a recurrent network needs: which steps continue an episode and the
+/// states the window starts from.
+#[derive(Clone, Debug, Default)]
+pub struct Sequences {
+    /// Envs.
+    pub num_envs: usize,
+    /// Steps per env.
+    pub steps: usize,
+    /// `[step][env]`: 0 where the env's episode ended at the step before (its state is
+    /// zeroed before this step), else 1.
+    pub keep: Vec<f32>,
+    /// `[env]`: the same for the observation after the window.
+    pub last_keep: Vec<f32>,
+    /// The actor's states at the window's start, `envs × width`.
+    pub actor_h0: Vec<f32>,
+    /// The critic's states at the window's start, `envs × width`.
+    pub critic_h0: Vec<f32>,
+    /// The critic's states to start the next window from (after this window's last step,
+    /// zeroed where its episode ended there).
+    pub critic_next: Vec<f32>,
+}
+
+impl Sequences {
+    fn of(r: &Rollout) -> Self {
+        let n = r.num_envs;
+        let steps = r.steps();
+        let keep_after = |i: usize| if r.dones[i] { 0.0 } else { 1.0 };
+        let mut keep = vec![1.0f32; steps * n];
+        for (i, k) in keep.iter_mut().enumerate().skip(n) {
+            *k = keep_after(i - n);
+        }
+        let last_keep = (0..n)
+            .map(|e| {
+                if steps == 0 {
+                    1.0
+                } else {
+                    keep_after((steps - 1) * n + e)
+                }
+            })
+            .collect();
+        Self {
+            num_envs: n,
+            steps,
+            keep,
+            last_keep,
+            actor_h0: r.actor_h0.clone(),
+            critic_h0: r.critic_h0.clone(),
+            critic_next: Vec::new(),
+        }
+    }
+}
+
+/// The samples of one minibatch: their indices into the batch (the rows of a network's
+/// outputs) and, for a recurrent network, the envs whose windows they are.
+#[derive(Clone, Debug, Default)]
+pub struct Minibatch {
+    /// Sample indices (time-major `step · envs + env`).
+    pub samples: Vec<usize>,
+    /// Recurrent: the envs, in the order the samples take them at each step.
+    pub envs: Vec<usize>,
+}
+
+impl Minibatch {
+    /// Every sample of `b`, every env.
+    pub fn all(b: &Batch) -> Self {
+        let envs = b.sequence.as_ref().map_or(0, |s| s.num_envs);
+        Self {
+            samples: (0..b.len()).collect(),
+            envs: (0..envs).collect(),
+        }
+    }
+
+    /// The windows of `envs`: their samples step by step.
+    pub fn of_envs(b: &Batch, envs: &[usize]) -> Self {
+        let (n, steps) = b
+            .sequence
+            .as_ref()
+            .map_or((0, 0), |s| (s.num_envs, s.steps));
+        Self {
+            samples: (0..steps)
+                .flat_map(|t| envs.iter().map(move |e| t * n + e))
+                .collect(),
+            envs: envs.to_vec(),
+        }
+    }
+}
+
+/// How PPO runs a network (the feed-forward MLPs of [`crate::model`] or the LSTM networks of
+/// [`crate::recurrent`]).
+pub trait PpoNet: Module + Sync + 'static {
+    /// Minibatches are whole env windows (the network carries a state) rather than samples.
+    const RECURRENT: bool;
+    /// The outputs for `mb`'s samples, one row each in `mb.samples` order (autodiff when
+    /// the network is on an autodiff device).
+    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2>;
+    /// The outputs for every sample of `b` and for the observations after the window
+    /// (`last_obs`), and the state to start the next window from (empty when
+    /// feed-forward).
+    fn rollout_outputs(
+        &self,
+        b: &Batch,
+        last_obs: &[f32],
+        device: &Device,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>);
+}
+
+/// A Gaussian policy PPO trains: outputs are the means; σ is state-independent. Its weights
+/// map one-to-one onto a firmware-core blob payload.
+pub trait PolicyNet: PpoNet + Sized {
+    /// log σ per action (a parameter).
+    fn log_std(&self) -> Tensor<1>;
+    /// σ per action.
+    fn std(&self) -> Vec<f32>;
+    /// A fresh actor of `arch` with σ = `init_std`, initialised from `rng`.
+    fn fresh(arch: &Architecture, init_std: f32, rng: &mut ChaCha8Rng, device: &Device) -> Self;
+    /// The weights in firmware-core payload order.
+    fn payload(&self) -> Vec<f32>;
+    /// The actor holding `payload` with σ = `std`; `None` when they do not fit `arch`.
+    fn from_payload(
+        arch: &Architecture,
+        payload: &[f32],
+        std: &[f32],
+        device: &Device,
+    ) -> Option<Self>;
+    /// The same actor with its output bias set to `action` on every motor.
+    fn with_output_bias(self, action: f32) -> Self;
+}
+
+/// A value function PPO trains.
+pub trait ValueNet: PpoNet {
+    /// A fresh critic with `arch`'s shape and one output, initialised from `rng`.
+    fn fresh(arch: &Architecture, rng: &mut ChaCha8Rng, device: &Device) -> Self;
+}
+
+impl PpoNet for Actor {
+    const RECURRENT: bool = false;
+    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+        self.mean(tensor2(
+            gather(&b.obs, b.obs_dim, &mb.samples),
+            b.obs_dim,
+            device,
+        ))
+    }
+    fn rollout_outputs(
+        &self,
+        b: &Batch,
+        last: &[f32],
+        device: &Device,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let all = values(self.mean(tensor2(b.obs.clone(), b.obs_dim, device)));
+        let last = values(self.mean(tensor2(last.to_vec(), b.obs_dim, device)));
+        (all, last, Vec::new())
+    }
+}
+
+impl PolicyNet for Actor {
+    fn log_std(&self) -> Tensor<1> {
+        self.log_std.val()
+    }
+    fn std(&self) -> Vec<f32> {
+        Actor::std(self)
+    }
+    fn fresh(arch: &Architecture, init_std: f32, rng: &mut ChaCha8Rng, device: &Device) -> Self {
+        Actor::new(arch, init_std, rng, device)
+    }
+    fn payload(&self) -> Vec<f32> {
+        Actor::payload(self)
+    }
+    fn from_payload(
+        arch: &Architecture,
+        payload: &[f32],
+        std: &[f32],
+        device: &Device,
+    ) -> Option<Self> {
+        Actor::from_payload(arch, payload, std, device)
+    }
+    fn with_output_bias(self, action: f32) -> Self {
+        Actor::with_output_bias(self, action)
+    }
+}
+
+impl ValueNet for Critic {
+    fn fresh(arch: &Architecture, rng: &mut ChaCha8Rng, device: &Device) -> Self {
+        Critic::new(arch, rng, device)
+    }
+}
+
+impl PpoNet for Critic {
+    const RECURRENT: bool = false;
+    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+        self.value(tensor2(
+            gather(&b.obs, b.obs_dim, &mb.samples),
+            b.obs_dim,
+            device,
+        ))
+    }
+    fn rollout_outputs(
+        &self,
+        b: &Batch,
+        last: &[f32],
+        device: &Device,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let all = values(self.value(tensor2(b.obs.clone(), b.obs_dim, device)));
+        let last = values(self.value(tensor2(last.to_vec(), b.obs_dim, device)));
+        (all, last, Vec::new())
+    }
+}
+
+/// The windows of `mb.envs` through `net` from the states `h0` (`envs × width` rows of
+/// the whole batch).
+fn window_outputs(
+    net: &crate::recurrent::LstmNet,
+    b: &Batch,
+    mb: &Minibatch,
+    h0: &[f32],
+    device: &Device,
+) -> Tensor<2> {
+    let Some(seq) = &b.sequence else {
+        return Tensor::zeros([0, 1], device);
+    };
+    let (layers, hidden) = (net.lstm.len(), net.hidden());
+    let width = LstmState::width(layers, hidden);
+    let envs = mb.envs.len();
+    let obs = Tensor::<2>::from_data(
+        TensorData::new(
+            gather(&b.obs, b.obs_dim, &mb.samples),
+            [mb.samples.len(), b.obs_dim],
+        ),
+        device,
+    )
+    .reshape([seq.steps, envs, b.obs_dim]);
+    let keep: Vec<f32> = mb.samples.iter().map(|&i| seq.keep[i]).collect();
+    let keep = Tensor::<2>::from_data(TensorData::new(keep, [seq.steps, envs]), device);
+    let state = if h0.is_empty() {
+        net.zero_state(envs, device)
+    } else {
+        LstmState::from_flat(&gather(h0, width, &mb.envs), layers, hidden, device)
+    };
+    net.sequence(obs, keep, state).0
+}
+
+/// The whole rollout through `net` (no autodiff): every sample's output, the outputs for
+/// the observations after the window, and the state after the window (zeroed where the
+/// episode ended at its last step).
+fn window_rollout_outputs(
+    net: &crate::recurrent::LstmNet,
+    b: &Batch,
+    last_obs: &[f32],
+    h0: &[f32],
+    device: &Device,
+) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let Some(seq) = &b.sequence else {
+        return (Vec::new(), Vec::new(), Vec::new());
+    };
+    let n = seq.num_envs;
+    let state = if h0.is_empty() {
+        net.zero_state(n, device)
+    } else {
+        LstmState::from_flat(h0, net.lstm.len(), net.hidden(), device)
+    };
+    let obs = tensor2(b.obs.clone(), b.obs_dim, device).reshape([seq.steps, n, b.obs_dim]);
+    let keep = Tensor::<2>::from_data(TensorData::new(seq.keep.clone(), [seq.steps, n]), device);
+    let (all, after) = net.sequence(obs, keep, state);
+    let last_keep = Tensor::<2>::from_data(TensorData::new(seq.last_keep.clone(), [1, n]), device);
+    let last = tensor2(last_obs.to_vec(), b.obs_dim, device).reshape([1, n, b.obs_dim]);
+    let kept = LstmState {
+        layers: after
+            .layers
+            .iter()
+            .map(|(h, c)| {
+                let k = last_keep.clone().reshape([n, 1]);
+                (h.clone() * k.clone(), c.clone() * k)
+            })
+            .collect(),
+    };
+    let (last_out, _) = net.sequence(last, last_keep.clone(), after);
+    (values(all), values(last_out), kept.to_flat())
+}
+
+impl PpoNet for RecurrentActor {
+    const RECURRENT: bool = true;
+    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.actor_h0);
+        window_outputs(&self.net, b, mb, h0, device)
+    }
+    fn rollout_outputs(
+        &self,
+        b: &Batch,
+        last: &[f32],
+        device: &Device,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.actor_h0);
+        window_rollout_outputs(&self.net, b, last, h0, device)
+    }
+}
+
+impl PolicyNet for RecurrentActor {
+    fn log_std(&self) -> Tensor<1> {
+        self.log_std.val()
+    }
+    fn std(&self) -> Vec<f32> {
+        RecurrentActor::std(self)
+    }
+    fn fresh(arch: &Architecture, init_std: f32, rng: &mut ChaCha8Rng, device: &Device) -> Self {
+        RecurrentActor::new(arch, init_std, rng, device)
+    }
+    fn payload(&self) -> Vec<f32> {
+        self.net.payload()
+    }
+    fn from_payload(
+        arch: &Architecture,
+        payload: &[f32],
+        std: &[f32],
+        device: &Device,
+    ) -> Option<Self> {
+        RecurrentActor::from_payload(arch, payload, std, device)
+    }
+    fn with_output_bias(mut self, action: f32) -> Self {
+        self.net.head = self.net.head.with_output_bias(action);
+        self
+    }
+}
+
+impl ValueNet for RecurrentCritic {
+    fn fresh(arch: &Architecture, rng: &mut ChaCha8Rng, device: &Device) -> Self {
+        RecurrentCritic::new(arch, rng, device)
+    }
+}
+
+impl PpoNet for RecurrentCritic {
+    const RECURRENT: bool = true;
+    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.critic_h0);
+        window_outputs(&self.net, b, mb, h0, device)
+    }
+    fn rollout_outputs(
+        &self,
+        b: &Batch,
+        last: &[f32],
+        device: &Device,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.critic_h0);
+        window_rollout_outputs(&self.net, b, last, h0, device)
     }
 }
 
@@ -95,6 +460,8 @@ pub struct Batch {
     pub returns: Vec<f32>,
     /// Normalised advantages.
     pub advantages: Vec<f32>,
+    /// Recurrent networks: the windows (`None` for feed-forward ones).
+    pub sequence: Option<Sequences>,
 }
 
 impl Batch {
@@ -245,12 +612,14 @@ fn scale<M: Module>(module: &M, grads: &mut GradientsParams, factor: f32) {
     module.visit(&mut v);
 }
 
-/// The learner: actor, critic, their Adam states and the adaptive learning rate.
-pub struct Learner {
+/// The learner: actor, critic, their Adam states and the adaptive learning rate. The
+/// feed-forward networks by default; `Learner<RecurrentActor, RecurrentCritic>` is
+/// recurrent PPO.
+pub struct Learner<A = Actor, C = Critic> {
     /// The policy.
-    pub actor: Actor,
+    pub actor: A,
     /// The value function.
-    pub critic: Critic,
+    pub critic: C,
     /// Adam on the actor's parameters.
     pub actor_optim: ModuleOptimizer,
     /// Adam on the critic's parameters.
@@ -282,18 +651,18 @@ struct ActorPass {
 }
 
 /// The critic's clipped value loss on a minibatch and its gradients.
-fn critic_pass(
-    critic: &Critic,
+fn critic_pass<C: PpoNet>(
+    critic: &C,
     b: &Batch,
-    idx: &[usize],
+    mb: &Minibatch,
     p: &PpoConfig,
     device: &Device,
 ) -> (GradientsParams, f64) {
+    let idx = &mb.samples;
     let pick = |v: &[f32]| -> Vec<f32> { idx.iter().map(|&i| v[i]).collect() };
-    let obs = tensor2(gather(&b.obs, b.obs_dim, idx), b.obs_dim, device);
     let old_v = tensor2(pick(&b.old_values), 1, device);
     let ret = tensor2(pick(&b.returns), 1, device);
-    let v = critic.value(obs);
+    let v = critic.outputs(b, mb, device);
     let v_clipped = old_v.clone() + (v.clone() - old_v).clamp(-p.clip, p.clip);
     let loss_raw = (v - ret.clone())
         .square()
@@ -309,20 +678,20 @@ fn critic_pass(
 
 /// The actor's clipped surrogate and entropy bonus on a minibatch, its gradients, and the
 /// KL(π_old ‖ π) before the step (RSL-RL's adaptive schedule measures it there).
-fn actor_pass(
-    actor: &Actor,
+fn actor_pass<A: PolicyNet>(
+    actor: &A,
     b: &Batch,
-    idx: &[usize],
+    mb: &Minibatch,
     p: &PpoConfig,
     device: &Device,
 ) -> ActorPass {
+    let idx = &mb.samples;
     let pick = |v: &[f32]| -> Vec<f32> { idx.iter().map(|&i| v[i]).collect() };
-    let obs = tensor2(gather(&b.obs, b.obs_dim, idx), b.obs_dim, device);
     let actions = tensor2(gather(&b.actions, ACTION_DIM, idx), ACTION_DIM, device);
     let old_lp = tensor2(pick(&b.old_log_prob), 1, device);
     let adv = tensor2(pick(&b.advantages), 1, device);
-    let mean = actor.mean(obs);
-    let log_std = actor.log_std.val();
+    let mean = actor.outputs(b, mb, device);
+    let log_std = actor.log_std();
     let mu = values(mean.clone().inner());
     let std_now = actor.std();
     let old_mu = gather(&b.old_mean, ACTION_DIM, idx);
@@ -369,9 +738,12 @@ fn actor_pass(
     }
 }
 
-impl Learner {
+/// Recurrent PPO's learner (rows E-G).
+pub type RecurrentLearner = Learner<RecurrentActor, RecurrentCritic>;
+
+impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
     /// A learner with fresh optimisers.
-    pub fn new(actor: Actor, critic: Critic, learning_rate: f64, device: Device) -> Self {
+    pub fn new(actor: A, critic: C, learning_rate: f64, device: Device) -> Self {
         Self {
             actor,
             critic,
@@ -387,14 +759,28 @@ impl Learner {
     /// Turns a rollout into training samples: old log-probabilities, means and values from
     /// one batched forward pass without autodiff, time-outs bootstrapped with γ·V of the
     /// step's observation (RSL-RL), GAE returns, advantages normalised over the rollout.
+    ///
+    /// Recurrent networks run over the window from the rollout's stored states; the batch's
+    /// [`Sequences::critic_next`] is the critic's state for the next window.
     pub fn prepare(&self, r: &Rollout, p: &PpoConfig) -> Batch {
         let actor = self.actor.valid();
         let critic = self.critic.valid();
         let device = self.device.clone().without_autodiff();
-        let obs_t = tensor2(r.obs.clone(), r.obs_dim, &device);
-        let old_mean = values(actor.mean(obs_t.clone()));
-        let old_values = values(critic.value(obs_t));
-        let last_values = values(critic.value(tensor2(r.last_obs.clone(), r.obs_dim, &device)));
+        let mut batch = Batch {
+            obs_dim: r.obs_dim,
+            obs: r.obs.clone(),
+            actions: r.actions.clone(),
+            old_log_prob: Vec::new(),
+            old_mean: Vec::new(),
+            old_std: [1.0; ACTION_DIM],
+            old_values: Vec::new(),
+            returns: vec![0.0; r.rewards.len()],
+            advantages: Vec::new(),
+            sequence: (A::RECURRENT || C::RECURRENT).then(|| Sequences::of(r)),
+        };
+        let (old_mean, _, _) = actor.rollout_outputs(&batch, &r.last_obs, &device);
+        let (old_values, last_values, critic_next) =
+            critic.rollout_outputs(&batch, &r.last_obs, &device);
         let std = actor.std();
         let old_std: [f32; ACTION_DIM] =
             core::array::from_fn(|k| std.get(k).copied().unwrap_or(1.0));
@@ -435,16 +821,17 @@ impl Learner {
         for a in &mut advantages {
             *a = ((f64::from(*a) - mean) / sd) as f32;
         }
+        if let Some(seq) = &mut batch.sequence {
+            seq.critic_next = critic_next;
+        }
         Batch {
-            obs_dim: r.obs_dim,
-            obs: r.obs.clone(),
-            actions: r.actions.clone(),
             old_log_prob,
             old_mean,
             old_std,
             old_values,
             returns,
             advantages,
+            ..batch
         }
     }
 
@@ -475,13 +862,16 @@ impl Learner {
 
     /// [`Learner::actor_gradient`] as burn's gradients, for an optimiser's step.
     pub fn actor_gradients(&self, batch: &Batch, p: &PpoConfig) -> GradientsParams {
-        let idx: Vec<usize> = (0..batch.len()).collect();
-        actor_pass(&self.actor, batch, &idx, p, &self.device).grads
+        actor_pass(&self.actor, batch, &Minibatch::all(batch), p, &self.device).grads
     }
 
-    /// `epochs × minibatches` PPO steps on `batch`, minibatches drawn from `rng`.
+    /// `epochs × minibatches` PPO steps on `batch`, minibatches drawn from `rng`: samples
+    /// for feed-forward networks, whole env windows for recurrent ones.
     pub fn update(&mut self, batch: &Batch, p: &PpoConfig, rng: &mut ChaCha8Rng) -> UpdateStats {
-        let n = batch.len();
+        let n = match &batch.sequence {
+            Some(s) if A::RECURRENT || C::RECURRENT => s.num_envs,
+            _ => batch.len(),
+        };
         let size = n / p.minibatches.max(1);
         let mut stats = UpdateStats::default();
         let mut count = 0.0;
@@ -517,12 +907,22 @@ impl Learner {
 
     /// One minibatch: actor and critic passes (on two threads when `parallel`), the
     /// KL-adapted learning rate, the global gradient clip, both Adam steps. `idx` are the
-    /// minibatch's sample indices into `b`.
+    /// minibatch's sample indices into `b` for feed-forward networks, its envs (whole
+    /// windows) for recurrent ones.
     pub fn train_minibatch(&mut self, b: &Batch, idx: &[usize], p: &PpoConfig) -> UpdateStats {
+        let mb = if A::RECURRENT || C::RECURRENT {
+            Minibatch::of_envs(b, idx)
+        } else {
+            Minibatch {
+                samples: idx.to_vec(),
+                envs: Vec::new(),
+            }
+        };
+        let mb = &mb;
         let (actor, critic, device) = (&self.actor, &self.critic, &self.device);
         let critic_lr = p.critic_learning_rate.unwrap_or(self.learning_rate);
         if !self.train_actor {
-            let (mut grads, value_loss) = critic_pass(critic, b, idx, p, device);
+            let (mut grads, value_loss) = critic_pass(critic, b, mb, p, device);
             let norm = squared_norm(critic, &grads).sqrt();
             if !(norm.is_finite() && value_loss.is_finite()) {
                 return UpdateStats {
@@ -547,8 +947,8 @@ impl Learner {
         }
         let (actor_pass, (critic_grads, value_loss)) = if self.parallel {
             std::thread::scope(|s| {
-                let critic_job = s.spawn(|| critic_pass(critic, b, idx, p, device));
-                let a = actor_pass(actor, b, idx, p, device);
+                let critic_job = s.spawn(|| critic_pass(critic, b, mb, p, device));
+                let a = actor_pass(actor, b, mb, p, device);
                 let c = critic_job
                     .join()
                     .unwrap_or_else(|e| std::panic::resume_unwind(e));
@@ -556,8 +956,8 @@ impl Learner {
             })
         } else {
             (
-                actor_pass(actor, b, idx, p, device),
-                critic_pass(critic, b, idx, p, device),
+                actor_pass(actor, b, mb, p, device),
+                critic_pass(critic, b, mb, p, device),
             )
         };
         let ActorPass {

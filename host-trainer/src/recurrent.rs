@@ -26,7 +26,7 @@ use crate::model::{Mlp, fast_tanh, values};
 use burn::module::{Module, Param};
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor, TensorData};
-use firmware_core::policy::{Architecture, TensorKind};
+use firmware_core::policy::{Architecture, PolicyState, TensorKind};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
@@ -152,6 +152,26 @@ impl LstmState {
                 .into_iter()
                 .map(|(h, c)| (h.detach(), c.detach()))
                 .collect(),
+        }
+    }
+}
+
+/// Appends a firmware-core recurrent state in [`LstmState`]'s flat layout (per layer `h`
+/// then `c`); nothing for a feed-forward policy.
+pub fn push_flat_state(state: &PolicyState, out: &mut Vec<f32>) {
+    match state {
+        PolicyState::Stateless => {}
+        PolicyState::Lstm1(s) => {
+            out.extend_from_slice(&s.first.h);
+            out.extend_from_slice(&s.first.c);
+        }
+        PolicyState::Lstm2(s) => {
+            out.extend_from_slice(&s.first.h);
+            out.extend_from_slice(&s.first.c);
+            for d in &s.deep {
+                out.extend_from_slice(&d.h);
+                out.extend_from_slice(&d.c);
+            }
         }
     }
 }

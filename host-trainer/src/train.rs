@@ -30,13 +30,13 @@
 use crate::config::{Guard, TrainConfig};
 use crate::env::{EnvConfig, EnvStats, RaceConfig, TrainEnv};
 use crate::model::{Actor, Critic, init_rng};
-use crate::ppo::{Learner, Rollout, UpdateStats, adam};
-use burn::module::Module;
+use crate::ppo::{Learner, PolicyNet, Rollout, UpdateStats, ValueNet, adam};
+use crate::recurrent::{RecurrentActor, RecurrentCritic};
 use burn::tensor::Device;
 use firmware_core::blob::AlignedBytes;
 use firmware_core::blob::{BlobHeader, Provenance, encode};
 use firmware_core::nn::ACTION_DIM;
-use firmware_core::observation::{ObservationLayout, ObservationSpec};
+use firmware_core::observation::{Observation, ObservationLayout, ObservationSpec};
 use firmware_core::policy::{Architecture, Policy, TableRow};
 use indicatif::{ProgressBar, ProgressStyle};
 use rand::{Rng, SeedableRng};
@@ -247,19 +247,16 @@ pub fn normal(rng: &mut ChaCha8Rng) -> f32 {
     (-2.0 * u1.ln()).sqrt() * (core::f32::consts::TAU * u2).cos()
 }
 
-/// The Table 1 row and architecture of a config: the feed-forward rows A to D (A in a time
-/// trial, B to D in a race); the recurrent rows E to G come with recurrent PPO.
+/// The Table 1 row and architecture of a config (A in a time trial, B to G in a race).
 pub fn architecture(config: &TrainConfig) -> Result<(TableRow, Architecture), TrainError> {
     let row = match config.run.row {
         'A' => TableRow::A,
         'B' => TableRow::B,
         'C' => TableRow::C,
         'D' => TableRow::D,
-        r @ ('E' | 'F' | 'G') => {
-            return Err(TrainError::Unsupported(format!(
-                "run.row '{r}': the recurrent rows need recurrent PPO, which this trainer does not have yet"
-            )));
-        }
+        'E' => TableRow::E,
+        'F' => TableRow::F,
+        'G' => TableRow::G,
         r => {
             return Err(TrainError::Unsupported(format!(
                 "run.row '{r}': Table 1 has rows A to G"
@@ -330,8 +327,8 @@ pub fn observation_spec(config: &TrainConfig) -> ObservationSpec {
 }
 
 /// The actor as a firmware-core blob with the run's provenance.
-pub fn actor_blob(
-    actor: &Actor,
+pub fn actor_blob<A: PolicyNet>(
+    actor: &A,
     config: &TrainConfig,
     iterations: u32,
 ) -> Result<Vec<u8>, TrainError> {
@@ -402,8 +399,8 @@ impl Paths {
 }
 
 /// Everything that evolves during a run.
-struct RunState {
-    learner: Learner,
+struct RunState<A = Actor, C = Critic> {
+    learner: Learner<A, C>,
     iteration: u32,
     samples: u64,
     wall_s: f64,
@@ -412,7 +409,11 @@ struct RunState {
     history: Vec<IterationMetrics>,
 }
 
-fn save_checkpoint(paths: &Paths, s: &RunState, config: &TrainConfig) -> Result<(), TrainError> {
+fn save_checkpoint<A: PolicyNet, C: ValueNet>(
+    paths: &Paths,
+    s: &RunState<A, C>,
+    config: &TrainConfig,
+) -> Result<(), TrainError> {
     let name = format!("iter_{:06}", s.iteration);
     let dir = paths.checkpoints.join(&name);
     if dir.exists() {
@@ -479,12 +480,12 @@ fn save_checkpoint(paths: &Paths, s: &RunState, config: &TrainConfig) -> Result<
     Ok(())
 }
 
-fn load_checkpoint(
+fn load_checkpoint<A: PolicyNet, C: ValueNet>(
     paths: &Paths,
     config: &TrainConfig,
     arch: &Architecture,
     device: &Device,
-) -> Result<RunState, TrainError> {
+) -> Result<RunState<A, C>, TrainError> {
     let name = std::fs::read_to_string(&paths.latest).map_err(|_| {
         TrainError::OutDir(format!(
             "nothing to resume: {} does not exist",
@@ -505,10 +506,10 @@ fn load_checkpoint(
     }
     let seed = config.run.seed;
     let mut rng = init_rng(seed);
-    let actor = Actor::new(arch, config.ppo.init_std, &mut rng, device)
+    let actor = A::fresh(arch, config.ppo.init_std, &mut rng, device)
         .try_load_file(dir.join("actor.bpk"))
         .map_err(|e| bad(format!("actor.bpk: {e:?}")))?;
-    let critic = Critic::new(arch, &mut rng, device)
+    let critic = C::fresh(arch, &mut rng, device)
         .try_load_file(dir.join("critic.bpk"))
         .map_err(|e| bad(format!("critic.bpk: {e:?}")))?;
     let actor_optim = adam()
@@ -549,19 +550,42 @@ pub fn checkpoint_learner(
     device: &Device,
 ) -> Result<(u32, Learner), TrainError> {
     let (_, arch) = architecture(config)?;
-    let state = load_checkpoint(&Paths::new(out), config, &arch, device)?;
+    let state = load_checkpoint::<Actor, Critic>(&Paths::new(out), config, &arch, device)?;
     Ok((state.iteration, state.learner))
 }
 
-/// The actor of the latest checkpoint in `out` (for exporting a run that has not finished,
-/// or checking a resume).
+/// The actor of the latest checkpoint in `out` as a blob with the run's provenance (for
+/// exporting a run that has not finished), feed-forward or recurrent, and its iteration.
+pub fn checkpoint_blob(
+    config: &TrainConfig,
+    out: &Path,
+    device: &Device,
+) -> Result<(u32, Vec<u8>), TrainError> {
+    let (_, arch) = architecture(config)?;
+    let paths = Paths::new(out);
+    if arch.is_recurrent() {
+        let s = load_checkpoint::<RecurrentActor, RecurrentCritic>(&paths, config, &arch, device)?;
+        Ok((
+            s.iteration,
+            actor_blob(&s.learner.actor, config, s.iteration)?,
+        ))
+    } else {
+        let s = load_checkpoint::<Actor, Critic>(&paths, config, &arch, device)?;
+        Ok((
+            s.iteration,
+            actor_blob(&s.learner.actor, config, s.iteration)?,
+        ))
+    }
+}
+
+/// The feed-forward actor of the latest checkpoint in `out` (for checking a resume).
 pub fn checkpoint_actor(
     config: &TrainConfig,
     out: &Path,
     device: &Device,
 ) -> Result<(u32, Actor), TrainError> {
     let (_, arch) = architecture(config)?;
-    let state = load_checkpoint(&Paths::new(out), config, &arch, device)?;
+    let state = load_checkpoint::<Actor, Critic>(&Paths::new(out), config, &arch, device)?;
     Ok((state.iteration, state.learner.actor))
 }
 
@@ -658,12 +682,12 @@ pub fn learning_curves(name: &str, history: &[IterationMetrics]) -> String {
 
 /// An actor holding the weights of the blob at `path`, which must be a row-A blob with the
 /// config's observation spec; σ is the config's `init_std`.
-fn actor_from_blob(
+fn actor_from_blob<A: PolicyNet>(
     path: &Path,
     arch: &Architecture,
     config: &TrainConfig,
     device: &Device,
-) -> Result<Actor, TrainError> {
+) -> Result<A, TrainError> {
     let raw = std::fs::read(path).map_err(io(path))?;
     let bytes = firmware_core::blob::AlignedBytes::new(&raw);
     let blob = firmware_core::blob::Blob::parse(bytes.as_bytes())
@@ -682,7 +706,7 @@ fn actor_from_blob(
         )));
     }
     let std = vec![config.ppo.init_std; usize::from(arch.action_dim)];
-    Actor::from_payload(arch, blob.weights(), &std, device)
+    A::from_payload(arch, blob.weights(), &std, device)
         .ok_or_else(|| TrainError::Checkpoint(format!("{}: weights do not fit", path.display())))
 }
 
@@ -777,11 +801,6 @@ pub fn collect_rollout(
     rollout: &mut Rollout,
     mut on_step: impl FnMut(&[f32], &[bool]),
 ) -> Result<(), TrainError> {
-    if policy.is_recurrent() {
-        return Err(TrainError::Unsupported(
-            "recurrent policies need recurrent PPO".into(),
-        ));
-    }
     let obs_dim = env.obs_dim();
     if policy.obs_dim() != obs_dim {
         return Err(TrainError::Unsupported(format!(
@@ -791,6 +810,16 @@ pub fn collect_rollout(
     }
     let n = env.num_envs();
     rollout.clear();
+    // The recurrent state of every env carries over from the last window; a new rollout (or
+    // a different env count) starts from zero.
+    if rollout.memory.len() != n {
+        rollout.memory = vec![policy.initial_state(); n];
+    }
+    if policy.is_recurrent() {
+        for s in &rollout.memory {
+            crate::recurrent::push_flat_state(s, &mut rollout.actor_h0);
+        }
+    }
     let mut actions = vec![0.0f32; n * ACTION_DIM];
     let mut noise = vec![0.0f32; n * ACTION_DIM];
     for _ in 0..steps {
@@ -803,13 +832,19 @@ pub fn collect_rollout(
             .par_chunks_mut(ACTION_DIM * 64)
             .zip(obs.par_chunks(obs_dim * 64))
             .zip(noise.par_chunks(ACTION_DIM * 64))
-            .for_each(|((a, o), z)| {
-                for ((a, o), z) in a
+            .zip(rollout.memory.par_chunks_mut(64))
+            .for_each(|(((a, o), z), memory)| {
+                for (((a, o), z), memory) in a
                     .chunks_exact_mut(ACTION_DIM)
                     .zip(o.chunks_exact(obs_dim))
                     .zip(z.chunks_exact(ACTION_DIM))
+                    .zip(memory)
                 {
-                    let Some(mean) = feed_forward_mean(policy, o) else {
+                    let mean = match Observation::from_values(o) {
+                        Some(o) => policy.act(&o, memory),
+                        None => None,
+                    };
+                    let Some(mean) = mean else {
                         continue;
                     };
                     for k in 0..ACTION_DIM {
@@ -823,21 +858,18 @@ pub fn collect_rollout(
         rollout.rewards.extend_from_slice(env.rewards());
         rollout.dones.extend_from_slice(env.dones());
         rollout.timeouts.extend_from_slice(env.timeouts());
+        for (m, _) in rollout
+            .memory
+            .iter_mut()
+            .zip(env.dones())
+            .filter(|(_, d)| **d)
+        {
+            m.clear();
+        }
         on_step(env.rewards(), env.dones());
     }
     rollout.last_obs.extend_from_slice(env.observations());
     Ok(())
-}
-
-/// The Gaussian mean of a feed-forward policy for one observation (`None` for a recurrent
-/// policy or an observation of the wrong size).
-fn feed_forward_mean(policy: &Policy<'_>, obs: &[f32]) -> Option<[f32; ACTION_DIM]> {
-    match policy {
-        Policy::A(p) => Some(p.forward(<&[f32; 17]>::try_from(obs).ok()?)),
-        Policy::B(p) => Some(p.forward(<&[f32; 20]>::try_from(obs).ok()?)),
-        Policy::C(p) => Some(p.forward(<&[f32; 30]>::try_from(obs).ok()?)),
-        Policy::E(_) | Policy::F(_) | Policy::G(_) => None,
-    }
 }
 
 /// Reward per step of the Gaussian policy with weights `payload` and σ `std` on the guard's
@@ -888,8 +920,8 @@ pub fn measured_return(
 /// largest of 1, 1/2, 1/4 of the update whose measured return is at least the old one's,
 /// else restores `before`, resets the actor's Adam state and halves the learning rate.
 /// Returns (share kept, return before, return kept).
-fn guard_update(
-    learner: &mut Learner,
+fn guard_update<A: PolicyNet, C: ValueNet>(
+    learner: &mut Learner<A, C>,
     before: (&[f32], &[f32]),
     arch: &Architecture,
     config: &TrainConfig,
@@ -914,20 +946,60 @@ fn guard_update(
         let r = measured_return(&w, &std, arch, config, guard, seed)?;
         if r >= base {
             if share < 1.0 {
-                learner.actor = Actor::from_payload(arch, &w, &std, &learner.device)
+                learner.actor = A::from_payload(arch, &w, &std, &learner.device)
                     .ok_or_else(|| TrainError::Export("guard: weights do not fit".into()))?;
             }
             return Ok((f64::from(share), base, r));
         }
     }
-    learner.actor = Actor::from_payload(arch, old_w, old_std, &learner.device)
+    learner.actor = A::from_payload(arch, old_w, old_std, &learner.device)
         .ok_or_else(|| TrainError::Export("guard: weights do not fit".into()))?;
     learner.actor_optim = adam();
     learner.learning_rate = (learner.learning_rate / 2.0).max(config.ppo.min_learning_rate);
     Ok((0.0, base, base))
 }
-/// Runs (or resumes) the training run of `config` into `options.out`.
+/// Runs (or resumes) the training run of `config` into `options.out`: PPO on the
+/// feed-forward networks of rows A-D, recurrent PPO on the LSTM networks of rows E-G.
 pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, TrainError> {
+    let (_, arch) = architecture(config)?;
+    if arch.is_recurrent() {
+        if config.warm_start.is_some() {
+            return Err(TrainError::Unsupported(
+                "[warm_start] imitates with a feed-forward student; rows E-G cannot use it".into(),
+            ));
+        }
+        run_networks::<RecurrentActor, RecurrentCritic>(config, options, |_| Ok(()))
+    } else {
+        run_networks::<Actor, Critic>(config, options, |start| {
+            let Some(warm) = &config.warm_start else {
+                return Ok(());
+            };
+            warm_start(
+                start.state,
+                &arch,
+                config,
+                warm,
+                start.paths,
+                &options.device,
+                options.progress,
+            )
+        })
+    }
+}
+
+/// What a fresh run's set-up step (the imitation warm start) may change.
+struct FreshStart<'a, A, C> {
+    state: &'a mut RunState<A, C>,
+    paths: &'a Paths,
+}
+
+/// [`run`] for one pair of networks; `fresh_start` runs once at the start of a new run
+/// that was not given `--init-actor`.
+fn run_networks<A: PolicyNet, C: ValueNet>(
+    config: &TrainConfig,
+    options: &RunOptions,
+    fresh_start: impl FnOnce(FreshStart<'_, A, C>) -> Result<(), TrainError>,
+) -> Result<RunSummary, TrainError> {
     let (_, arch) = architecture(config)?;
     if config.race.is_some() && config.warm_start.is_some() {
         return Err(TrainError::Unsupported(
@@ -959,8 +1031,8 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
         }
         std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
         let mut rng = init_rng(config.run.seed);
-        let mut actor = Actor::new(&arch, config.ppo.init_std, &mut rng, &device);
-        let critic = Critic::new(&arch, &mut rng, &device);
+        let mut actor = A::fresh(&arch, config.ppo.init_std, &mut rng, &device);
+        let critic = C::fresh(&arch, &mut rng, &device);
         if config.ppo.init_hover {
             actor = actor.with_output_bias(hover_action(config));
         }
@@ -986,16 +1058,11 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
             println!("actor initialised from {}", path.display());
             std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
             save_checkpoint(&paths, &state, config)?;
-        } else if let Some(warm) = &config.warm_start {
-            warm_start(
-                &mut state,
-                &arch,
-                config,
-                warm,
-                &paths,
-                &device,
-                options.progress,
-            )?;
+        } else {
+            fresh_start(FreshStart {
+                state: &mut state,
+                paths: &paths,
+            })?;
         }
     }
     let config_text = toml::to_string(config).unwrap_or_default();
@@ -1076,6 +1143,10 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
         // Update.
         let t_update = Instant::now();
         let batch = state.learner.prepare(&rollout, params);
+        if let Some(seq) = &batch.sequence {
+            // The critic's state for the next window (the actor's lives in the rollout).
+            rollout.critic_h0.clone_from(&seq.critic_next);
+        }
         let u: UpdateStats = state.learner.update(&batch, params, &mut state.shuffle_rng);
         let guarded = match (&config.guard, state.learner.train_actor) {
             (Some(g), true) => Some(guard_update(

@@ -70,6 +70,7 @@ fn an_update_moves_the_mean_toward_positive_advantages() {
         old_values: vec![0.0; n],
         returns: vec![0.0; n],
         advantages,
+        sequence: None,
     };
     // The diagnostic gradient (examples/gradient_snr.rs): one value per actor parameter
     // (the blob's weights and the four log σ), and a plain step along it moves motor 0 the
@@ -188,6 +189,7 @@ fn parallel_passes_equal_sequential_passes() {
         old_values: f(n, 0.2),
         returns: f(n, 0.5),
         advantages: f(n, 2.0),
+        sequence: None,
     };
     let idx: Vec<usize> = (0..n).collect();
     let mut p = params();
@@ -232,6 +234,7 @@ fn a_nan_minibatch_changes_nothing() {
         old_values: vec![0.0; n],
         returns: vec![0.1; n],
         advantages,
+        sequence: None,
     };
     let before = learner.actor.payload();
     let idx: Vec<usize> = (0..n).collect();

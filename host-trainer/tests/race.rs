@@ -103,10 +103,6 @@ fn inconsistent_race_configs_are_refused_with_a_reason() {
         let e = TrainConfig::parse(&text).unwrap_err().to_string();
         assert!(e.contains(why), "expected '{why}' in: {e}");
     }
-    // The recurrent rows parse but are refused by the trainer until recurrent PPO lands.
-    let g = TrainConfig::parse(&edit("row = \"C\"", "row = \"G\"")).unwrap();
-    let e = run(&g, &options(tmp("g"))).unwrap_err().to_string();
-    assert!(e.contains("recurrent"), "{e}");
 }
 
 #[test]
@@ -117,4 +113,56 @@ fn a_missing_opponent_is_an_error_before_any_work() {
     let e = run(&c, &options(out.clone())).unwrap_err().to_string();
     assert!(e.contains("/nonexistent/opponent.blob"), "{e}");
     assert!(!out.join("checkpoints").exists());
+}
+
+/// Recurrent PPO end to end on row G: two iterations train, the exported blob is a row-G
+/// policy that firmware-core's controller loads, and a run stopped after its first
+/// iteration learned exactly what the uninterrupted run did up to there and resumes to the
+/// end. (A resumed run restarts its environments and recurrent states, as the feed-forward
+/// trainer restarts its environments, so the later iterations differ.)
+#[test]
+fn a_row_g_race_trains_exports_and_resumes() {
+    let mut c = config();
+    c.run.row = 'G';
+    c.run.name = "smoke-race-g".into();
+    let whole = tmp("g-whole");
+    let summary = run(&c, &options(whole.clone())).unwrap();
+    let raw = std::fs::read(summary.blob.expect("finished")).unwrap();
+    let bytes = AlignedBytes::new(&raw);
+    let blob = Blob::parse(bytes.as_bytes()).unwrap();
+    assert_eq!(
+        blob.header().architecture,
+        firmware_core::policy::Architecture::table1(firmware_core::policy::TableRow::G)
+    );
+    Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).unwrap();
+
+    // Stopped after the first iteration (its checkpoint), then resumed.
+    let split = tmp("g-split");
+    let mut first = options(split.clone());
+    first.stop_after = Some(1);
+    assert!(run(&c, &first).unwrap().blob.is_none());
+    let read = |dir: &PathBuf| -> Vec<IterationMetrics> {
+        std::fs::read_to_string(dir.join("metrics.jsonl"))
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect()
+    };
+    let learned = |m: &IterationMetrics| {
+        (
+            m.reward_per_step,
+            m.surrogate_loss,
+            m.value_loss,
+            m.kl,
+            m.learning_rate,
+        )
+    };
+    assert_eq!(learned(&read(&split)[0]), learned(&read(&whole)[0]));
+    let mut second = options(split.clone());
+    second.resume = true;
+    let resumed = run(&c, &second).unwrap();
+    assert!(resumed.blob.is_some());
+    assert_eq!(read(&split).len(), 2);
+    let _ = std::fs::remove_dir_all(&whole);
+    let _ = std::fs::remove_dir_all(&split);
 }

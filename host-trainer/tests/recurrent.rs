@@ -8,19 +8,15 @@ use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::observation::Observation;
 use firmware_core::policy::{Architecture, Policy, PolicyState, TableRow};
 use host_trainer::model::{init_rng, values};
-use host_trainer::recurrent::{LstmState, RecurrentActor};
+use host_trainer::recurrent::{LstmState, RecurrentActor, push_flat_state};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 /// The flat state (per layer h, c) of a firmware-core recurrent state.
 fn flat(state: &PolicyState) -> Vec<f32> {
-    match state {
-        PolicyState::Stateless => Vec::new(),
-        PolicyState::Lstm1(s) => [s.first.h.as_slice(), &s.first.c].concat(),
-        PolicyState::Lstm2(s) => {
-            [s.first.h.as_slice(), &s.first.c, &s.deep[0].h, &s.deep[0].c].concat()
-        }
-    }
+    let mut v = Vec::new();
+    push_flat_state(state, &mut v);
+    v
 }
 
 fn observation(values: &[f32]) -> Observation {
@@ -92,4 +88,116 @@ fn burn_lstm_actors_act_as_firmware_core_over_a_window() {
         println!("row {}: max |Δ| = {d:e}", row.letter());
         assert!(d <= 1e-5, "row {}: max |Δ| = {d:e}", row.letter());
     }
+}
+
+// ---- Recurrent PPO's bookkeeping ------------------------------------------------------
+
+use firmware_core::blob::AlignedBytes;
+use firmware_core::observation::ObservationSpec;
+use host_trainer::config::TrainConfig;
+use host_trainer::env::{Competition, EnvConfig, RaceConfig, TrainEnv};
+use host_trainer::ppo::{Minibatch, RecurrentLearner, Rollout};
+use host_trainer::recurrent::RecurrentCritic;
+use host_trainer::train::collect_rollout;
+
+fn race_env(envs: usize) -> TrainEnv {
+    let raw = std::fs::read(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../policies/stage1_guarded.blob"
+    ))
+    .unwrap();
+    TrainEnv::with_race(EnvConfig {
+        observation: ObservationSpec::paper(
+            firmware_core::observation::ObservationLayout::FullOpponent30,
+        ),
+        race: Some(RaceConfig {
+            opponent: AlignedBytes::new(&raw),
+            competition: Competition::Dense,
+            competition_weight: 0.5,
+        }),
+        ..EnvConfig::paper_along_track(envs, 4)
+    })
+    .unwrap()
+}
+
+/// With σ = 0 the rollout's actions are firmware-core's means, computed step by step with
+/// each env's controller state carried across windows and cleared at its episode ends. The
+/// update's view of the same window, burn over the whole window from the stored start
+/// states with the resets, must give the same means (≤ 1e-5), in the first window and in
+/// the second (which starts from carried, non-zero states); and the critic started from the
+/// first window's `critic_next` must give the values of one pass over both windows.
+#[test]
+fn the_update_sees_the_rollouts_recurrent_states() {
+    let device = Device::flex();
+    let arch = Architecture::table1(TableRow::G);
+    let config = TrainConfig::parse(include_str!("../configs/smoke_race.toml")).unwrap();
+    let p = &config.ppo;
+    let actor = RecurrentActor::new(&arch, 0.5, &mut init_rng(3), &device);
+    let critic = RecurrentCritic::new(&arch, &mut init_rng(4), &device);
+    let learner = RecurrentLearner::new(actor, critic, 1e-4, device.clone());
+    let payload = learner.actor.net.payload();
+    let policy = Policy::from_payload(&arch, &payload).unwrap();
+    let (envs, steps) = (16, 60);
+    let mut env = race_env(envs);
+    let mut rollout = Rollout::new(envs, 30);
+    let mut noise = ChaCha8Rng::seed_from_u64(0);
+    let zero = [0.0f32; 4];
+    let mut windows = Vec::new();
+    let mut batches = Vec::new();
+    let mut dones = 0;
+    for _ in 0..2 {
+        collect_rollout(
+            &mut env,
+            &policy,
+            &zero,
+            steps,
+            &mut noise,
+            &mut rollout,
+            |_, d| {
+                dones += d.iter().filter(|d| **d).count();
+            },
+        )
+        .unwrap();
+        let batch = learner.prepare(&rollout, p);
+        let worst = batch
+            .old_mean
+            .iter()
+            .zip(&rollout.actions)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        println!("window {}: max |Δ| = {worst:e}", windows.len());
+        assert!(
+            worst <= 1e-5,
+            "window {}: max |Δ| = {worst:e}",
+            windows.len()
+        );
+        rollout.critic_h0 = batch.sequence.as_ref().unwrap().critic_next.clone();
+        windows.push(rollout.clone());
+        batches.push(batch);
+    }
+    assert!(dones > 0, "some episodes ended inside the windows");
+    assert!(windows[1].actor_h0.iter().any(|v| *v != 0.0));
+
+    // The critic over both windows at once, from zero.
+    let mut both = windows[0].clone();
+    both.obs.extend_from_slice(&windows[1].obs);
+    both.actions.extend_from_slice(&windows[1].actions);
+    both.rewards.extend_from_slice(&windows[1].rewards);
+    both.dones.extend_from_slice(&windows[1].dones);
+    both.timeouts.extend_from_slice(&windows[1].timeouts);
+    both.last_obs.clone_from(&windows[1].last_obs);
+    both.critic_h0.clear();
+    let joint = learner.prepare(&both, p);
+    let second = &batches[1];
+    let n = envs * steps;
+    let worst = joint.old_values[n..]
+        .iter()
+        .zip(&second.old_values)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst <= 1e-5, "critic across windows: max |Δ| = {worst:e}");
+    // Minibatches of whole windows cover every sample once.
+    let mb = Minibatch::of_envs(second, &[3, 7]);
+    assert_eq!(mb.samples.len(), 2 * steps);
+    assert_eq!(&mb.samples[..3], &[3, 7, envs + 3]);
 }
