@@ -4,8 +4,7 @@
 //!
 //! **The fused cell.** Each layer keeps its four gates in one input weight `[in, 4H]` and
 //! one recurrent weight `[H, 4H]` (PyTorch's gate order i, f, g, o along the columns), so a
-//! step is one `[B, H] × [H, 4H]` matmul and the input side of a whole sequence is one
-//! `[T·B, in] × [in, 4H]` matmul before the time loop; `burn`'s `nn::Lstm` runs a linear
+//! step is one `[B, in] × [in, 4H]` and one `[B, H] × [H, 4H]` matmul; `burn`'s `nn::Lstm` runs a linear
 //! per gate (issue "stage2": about 2× slower to train). tanh is `2·σ(2x) − 1` as in
 //! [`crate::model`].
 //!
@@ -239,7 +238,15 @@ impl LstmNet {
         state: LstmState,
     ) -> (Tensor<2>, LstmState) {
         let [steps, envs, input] = obs.dims();
-        let mut x = obs.reshape([steps * envs, input]);
+        // Per-step pieces, sliced from tensors that need no gradient (the observations and
+        // the masks): slicing one large tensor that does (a whole window's input-side
+        // pre-activations) costs a window-sized zero tensor per slice in the backward pass,
+        // which made the whole update 5.8x slower (docs/PERFORMANCE.md).
+        let mut xs: Vec<Tensor<2>> = obs
+            .reshape([steps * envs, input])
+            .split(envs, 0)
+            .into_iter()
+            .collect();
         let keeps: Vec<Tensor<2>> = keep
             .reshape([steps * envs, 1])
             .split(envs, 0)
@@ -247,20 +254,20 @@ impl LstmNet {
             .collect();
         let mut layers = state.layers;
         for (layer, cell) in self.lstm.iter().enumerate() {
-            // The input side of every step at once.
-            let zx = x.matmul(cell.weight_ih.val()) + cell.bias.val().unsqueeze::<2>();
+            let (w_ih, bias) = (cell.weight_ih.val(), cell.bias.val().unsqueeze::<2>());
             let (mut h, mut c) = layers[layer].clone();
             let mut outputs = Vec::with_capacity(steps);
-            for (zx_t, keep_t) in zx.split(envs, 0).into_iter().zip(&keeps) {
+            for (x_t, keep_t) in xs.iter().zip(&keeps) {
                 h = h * keep_t.clone();
                 c = c * keep_t.clone();
-                (h, c) = cell.step(zx_t, h, c);
+                let zx = x_t.clone().matmul(w_ih.clone()) + bias.clone();
+                (h, c) = cell.step(zx, h, c);
                 outputs.push(h.clone());
             }
             layers[layer] = (h, c);
-            x = Tensor::cat(outputs, 0);
+            xs = outputs;
         }
-        (self.head.forward(x), LstmState { layers })
+        (self.head.forward(Tensor::cat(xs, 0)), LstmState { layers })
     }
 
     /// The weights in firmware-core payload order (see the module doc).
