@@ -75,6 +75,11 @@ pub struct Guard {
 pub struct WarmStart {
     /// Cruise speed of the baseline teacher (m/s); it flies without a crash up to 10.
     pub teacher_cruise_mps: f32,
+    /// A time-trial (17-value) blob whose mean labels the states instead of the baseline:
+    /// stage 2 imitates the stage-1 policy (issue "stage2"). Relative to the working
+    /// directory. Absent: the baseline at `teacher_cruise_mps`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub teacher_blob: Option<String>,
     /// DAgger rounds; the teacher's share of the executed actions falls linearly from 1 to
     /// 0 over the first half.
     pub rounds: u32,

@@ -521,6 +521,51 @@ impl TrainEnv {
             });
     }
 
+    /// What a feed-forward `policy` (a time-trial blob's, observing through `spec`) would
+    /// command in every env now: its means for the ego's state, the ego's target gate and
+    /// the ego's executed previous action (`num_envs × 4`, row-major). The labels of an
+    /// imitation warm start with a learned teacher; a recurrent or opponent-observing policy
+    /// gives zeros (it is refused before this is called).
+    pub fn policy_actions(
+        &self,
+        policy: &firmware_core::policy::Policy<'_>,
+        spec: &ObservationSpec,
+        out: &mut [f32],
+    ) {
+        let world = &self.world;
+        self.slots
+            .par_chunks(CHUNK)
+            .zip(out.par_chunks_mut(CHUNK * ACTION_DIM))
+            .for_each(|(slots, out)| {
+                for (slot, a) in slots.iter().zip(out.chunks_exact_mut(ACTION_DIM)) {
+                    let d = &slot.drones[0];
+                    let gate = world.track.gate(d.progress.target);
+                    let mut state = firmware_core::policy::PolicyState::Stateless;
+                    let mean = spec
+                        .observe(&d.body.state, &gate, &slot.previous_action, None)
+                        .ok()
+                        .and_then(|o| policy.act(&o, &mut state));
+                    a.copy_from_slice(&mean.unwrap_or([0.0; ACTION_DIM]));
+                }
+            });
+    }
+
+    /// Starts a new episode in every env now (a fresh spawn, the opponent's controller
+    /// reset): for collecting data whose recurrent state starts at zero.
+    pub fn respawn_all(&mut self) {
+        let rule = self.spawn_rule();
+        for slot in &mut self.slots {
+            respawn(&self.world, &self.line, &rule, slot);
+        }
+        for (slot, obs) in self
+            .slots
+            .iter()
+            .zip(self.observations.chunks_exact_mut(self.obs_dim))
+        {
+            observe(&self.world, &self.spec, slot, obs);
+        }
+    }
+
     /// The statistics since the last call, summed over envs, and reset.
     pub fn take_stats(&mut self) -> EnvStats {
         let mut total = EnvStats::default();

@@ -12,11 +12,14 @@
 use crate::config::{TrainConfig, WarmStart};
 use crate::env::{OBS_DIM, TrainEnv};
 use crate::model::{Actor, values};
-use crate::train::{TrainError, env_config};
+use crate::recurrent::RecurrentActor;
+use crate::train::{TrainError, env_config, make_env};
+use burn::module::Module;
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::baseline::BaselineController;
 use firmware_core::nn::ACTION_DIM;
+use firmware_core::observation::Observation;
 use firmware_core::policy::{Architecture, Policy};
 use firmware_core::track::Track;
 use rand::seq::SliceRandom;
@@ -36,10 +39,17 @@ pub struct ImitationRound {
     pub samples: usize,
     /// Mean squared error of the student's mean against the labels, last epoch.
     pub mse: f64,
+    /// The same in the round's first epoch (recurrent warm start; 0 where not recorded).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub mse_first_epoch: f64,
     /// Gates passed per simulated second by the executed mixture.
     pub gates_per_s: f64,
     /// Crashes per simulated second by the executed mixture.
     pub crash_rate_per_s: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 /// Runs the warm start on `actor` and returns the student (σ unchanged) with the rounds'
@@ -133,6 +143,243 @@ pub fn imitate(
             teacher_share: from_teacher as f64 / (n * warm.steps_per_env).max(1) as f64,
             samples: count,
             mse,
+            mse_first_epoch: 0.0,
+            gates_per_s: stats.gates_passed as f64 / sim_s.max(1e-9),
+            crash_rate_per_s: stats.crashes as f64 / sim_s.max(1e-9),
+        };
+        log(&r);
+        rounds.push(r);
+    }
+    Ok((actor, rounds))
+}
+
+/// Who labels the states of a warm start.
+enum Teacher {
+    /// The classical baseline at a cruise speed.
+    Baseline(Box<BaselineController<'static>>),
+    /// A time-trial blob's mean, observing through its own spec.
+    Blob {
+        bytes: firmware_core::blob::AlignedBytes,
+    },
+}
+
+impl Teacher {
+    fn of(config: &TrainConfig, warm: &WarmStart) -> Result<Self, TrainError> {
+        let Some(path) = &warm.teacher_blob else {
+            let preset = Preset::by_name(&config.env.preset).unwrap_or_else(Preset::paper);
+            let mut c = sitl::pilot::baseline_config_for(&preset);
+            c.cruise_speed_mps = warm.teacher_cruise_mps;
+            return Ok(Self::Baseline(Box::new(BaselineController::new(
+                c,
+                Track::figure_eight(),
+            ))));
+        };
+        let raw = std::fs::read(path).map_err(|e| {
+            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
+        })?;
+        let bytes = firmware_core::blob::AlignedBytes::new(&raw);
+        let blob = firmware_core::blob::Blob::parse(bytes.as_bytes()).map_err(|e| {
+            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
+        })?;
+        let policy = blob.policy().map_err(|e| {
+            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
+        })?;
+        if policy.is_recurrent() || blob.header().observation.layout.needs_opponent() {
+            return Err(TrainError::Unsupported(format!(
+                "warm_start.teacher_blob '{path}': the teacher must be a feed-forward time-trial policy"
+            )));
+        }
+        Ok(Self::Blob { bytes })
+    }
+
+    /// The teacher's actions for every env of `env` now.
+    fn label(&self, env: &TrainEnv, out: &mut [f32]) {
+        match self {
+            Self::Baseline(b) => env.teacher_actions(b, out),
+            Self::Blob { bytes } => {
+                if let Ok(blob) = firmware_core::blob::Blob::parse(bytes.as_bytes()) {
+                    if let Ok(policy) = blob.policy() {
+                        env.policy_actions(&policy, &blob.header().observation, out);
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// One DAgger round of a recurrent student: `steps × envs` samples, time-major, from fresh
+/// spawns (so the student's state starts at zero).
+struct Round {
+    obs: Vec<f32>,
+    labels: Vec<f32>,
+    /// 0 where the env's episode ended at the step before.
+    keep: Vec<f32>,
+}
+
+/// The warm start of a recurrent actor (rows E-G): DAgger as [`imitate`], on the config's
+/// environment (the race, for stage 2), each round from fresh spawns, the student acting
+/// through firmware-core with its state carried step by step. The regression runs the
+/// student over windows of `ppo.steps_per_env` steps with backpropagation through each
+/// window; the state each window starts from is recomputed by the current student at every
+/// epoch (from zero at the round's start), so old rounds are not fitted from stale states.
+pub fn imitate_recurrent(
+    mut actor: RecurrentActor,
+    arch: &Architecture,
+    config: &TrainConfig,
+    warm: &WarmStart,
+    device: &Device,
+    log: &mut dyn FnMut(&ImitationRound),
+) -> Result<(RecurrentActor, Vec<ImitationRound>), TrainError> {
+    let teacher = Teacher::of(config, warm)?;
+    let mut env = make_env(config, config.run.seed ^ 0x0da6_9e12)?;
+    let (n, obs_dim) = (env.num_envs(), env.obs_dim());
+    let window = config.ppo.steps_per_env.max(1);
+    let envs_per_batch = (warm.minibatch / window).clamp(1, n);
+    let mut rng = ChaCha8Rng::seed_from_u64(config.run.seed);
+    rng.set_stream(u64::MAX - 3);
+    let mut optim = crate::ppo::adam();
+    let mut data: Vec<Round> = Vec::new();
+    let mut labels = vec![0.0f32; n * ACTION_DIM];
+    let mut executed = vec![0.0f32; n * ACTION_DIM];
+    let mut rounds = Vec::new();
+    let half = (warm.rounds / 2).max(1);
+    let valid = device.clone().without_autodiff();
+    for round in 0..warm.rounds {
+        let beta = (1.0 - f64::from(round) / f64::from(half)).max(0.0);
+        let payload = actor.net.payload();
+        let policy = Policy::from_payload(arch, &payload)
+            .map_err(|e| TrainError::Unsupported(format!("imitation: {e}")))?;
+        let mut memory = vec![policy.initial_state(); n];
+        env.respawn_all();
+        let mut r = Round {
+            obs: Vec::new(),
+            labels: Vec::new(),
+            keep: Vec::new(),
+        };
+        let mut previous_done = vec![false; n];
+        let mut from_teacher = 0usize;
+        for _ in 0..warm.steps_per_env {
+            let obs = env.observations().to_vec();
+            teacher.label(&env, &mut labels);
+            for e in 0..n {
+                let out = &mut executed[e * ACTION_DIM..(e + 1) * ACTION_DIM];
+                // The student steps every time, so its state follows the flight.
+                let o = Observation::from_values(&obs[e * obs_dim..(e + 1) * obs_dim]);
+                let mean = o.and_then(|o| policy.act(&o, &mut memory[e]));
+                if rng.random::<f64>() < beta {
+                    out.copy_from_slice(&labels[e * ACTION_DIM..(e + 1) * ACTION_DIM]);
+                    from_teacher += 1;
+                } else {
+                    let mean = mean.unwrap_or([0.0; ACTION_DIM]);
+                    for k in 0..ACTION_DIM {
+                        out[k] = mean[k] + warm.student_noise_std * crate::train::normal(&mut rng);
+                    }
+                }
+            }
+            r.obs.extend_from_slice(&obs);
+            r.labels.extend_from_slice(&labels);
+            r.keep
+                .extend(previous_done.iter().map(|d| if *d { 0.0 } else { 1.0 }));
+            env.step(&executed)
+                .map_err(|e| TrainError::Unsupported(e.to_string()))?;
+            previous_done.copy_from_slice(env.dones());
+            for (m, _) in memory.iter_mut().zip(env.dones()).filter(|(_, d)| **d) {
+                m.clear();
+            }
+        }
+        let stats = env.take_stats();
+        data.push(r);
+        let per_round = n * warm.steps_per_env;
+        let keep_rounds = (warm.max_samples / per_round.max(1)).max(1);
+        if data.len() > keep_rounds {
+            data.drain(..data.len() - keep_rounds);
+        }
+
+        let (mut mse, mut mse_first_epoch) = (0.0, 0.0);
+        for epoch in 0..warm.epochs {
+            // (round, window start, envs) minibatches with the windows' starting states.
+            let mut batches = Vec::new();
+            let mut starts: Vec<Vec<f32>> = Vec::new();
+            for (ri, r) in data.iter().enumerate() {
+                let steps = r.labels.len() / (n * ACTION_DIM);
+                let net = actor.net.valid();
+                let mut state = net.zero_state(n, &valid);
+                for t0 in (0..steps).step_by(window) {
+                    let len = window.min(steps - t0);
+                    starts.push(state.to_flat());
+                    let obs = Tensor::<2>::from_data(
+                        TensorData::new(
+                            r.obs[t0 * n * obs_dim..(t0 + len) * n * obs_dim].to_vec(),
+                            [len * n, obs_dim],
+                        ),
+                        &valid,
+                    )
+                    .reshape([len, n, obs_dim]);
+                    let keep = Tensor::<2>::from_data(
+                        TensorData::new(r.keep[t0 * n..(t0 + len) * n].to_vec(), [len, n]),
+                        &valid,
+                    );
+                    state = net.sequence(obs, keep, state).1;
+                    let mut envs: Vec<usize> = (0..n).collect();
+                    envs.shuffle(&mut rng);
+                    for group in envs.chunks(envs_per_batch) {
+                        batches.push((ri, t0, len, starts.len() - 1, group.to_vec()));
+                    }
+                }
+            }
+            batches.shuffle(&mut rng);
+            let (mut sum, mut count) = (0.0, 0.0);
+            let width =
+                crate::recurrent::LstmState::width(actor.net.lstm.len(), actor.net.hidden());
+            for (ri, t0, len, si, group) in batches {
+                let r = &data[ri];
+                let b = group.len();
+                let (mut o, mut a, mut k, mut h0) = (
+                    Vec::with_capacity(len * b * obs_dim),
+                    Vec::with_capacity(len * b * ACTION_DIM),
+                    Vec::with_capacity(len * b),
+                    Vec::with_capacity(b * width),
+                );
+                for t in t0..t0 + len {
+                    for &e in &group {
+                        let i = t * n + e;
+                        o.extend_from_slice(&r.obs[i * obs_dim..(i + 1) * obs_dim]);
+                        a.extend_from_slice(&r.labels[i * ACTION_DIM..(i + 1) * ACTION_DIM]);
+                        k.push(r.keep[i]);
+                    }
+                }
+                for &e in &group {
+                    h0.extend_from_slice(&starts[si][e * width..(e + 1) * width]);
+                }
+                let obs = Tensor::<2>::from_data(TensorData::new(o, [len * b, obs_dim]), device)
+                    .reshape([len, b, obs_dim]);
+                let keep = Tensor::<2>::from_data(TensorData::new(k, [len, b]), device);
+                let act = Tensor::<2>::from_data(TensorData::new(a, [len * b, ACTION_DIM]), device);
+                let state = crate::recurrent::LstmState::from_flat(
+                    &h0,
+                    actor.net.lstm.len(),
+                    actor.net.hidden(),
+                    device,
+                );
+                let (mean, _) = actor.net.sequence(obs, keep, state);
+                let loss = (mean - act).square().mean();
+                sum += f64::from(values(loss.clone().inner()).first().copied().unwrap_or(0.0));
+                count += 1.0;
+                let grads = GradientsParams::from_grads(loss.backward(), &actor);
+                actor = optim.step(warm.learning_rate, actor, grads);
+            }
+            mse = sum / f64::max(count, 1.0);
+            if epoch == 0 {
+                mse_first_epoch = mse;
+            }
+        }
+        let sim_s = stats.steps as f64 * f64::from(env.dt_s());
+        let r = ImitationRound {
+            round: round + 1,
+            teacher_share: from_teacher as f64 / (n * warm.steps_per_env).max(1) as f64,
+            samples: data.len() * n * warm.steps_per_env,
+            mse,
+            mse_first_epoch,
             gates_per_s: stats.gates_passed as f64 / sim_s.max(1e-9),
             crash_rate_per_s: stats.crashes as f64 / sim_s.max(1e-9),
         };

@@ -713,19 +713,27 @@ fn actor_from_blob<A: PolicyNet>(
 /// The imitation warm start of a fresh run: the student replaces the initial actor (its σ
 /// kept), the rounds go to `imitation.jsonl`, and a checkpoint at iteration 0 keeps a resume
 /// from redoing it.
-fn warm_start(
-    state: &mut RunState,
-    arch: &Architecture,
+#[allow(clippy::too_many_arguments)]
+fn warm_start<A: PolicyNet, C: ValueNet>(
+    state: &mut RunState<A, C>,
     config: &TrainConfig,
     warm: &crate::config::WarmStart,
     paths: &Paths,
     device: &Device,
     progress: bool,
+    imitate: impl FnOnce(
+        A,
+        &mut dyn FnMut(&crate::imitation::ImitationRound),
+    ) -> Result<(A, Vec<crate::imitation::ImitationRound>), TrainError>,
 ) -> Result<(), TrainError> {
     let started = Instant::now();
+    let teacher = match &warm.teacher_blob {
+        Some(p) => p.clone(),
+        None => format!("the baseline at {} m/s", warm.teacher_cruise_mps),
+    };
     println!(
-        "imitation warm start: {} DAgger rounds of the baseline at {} m/s",
-        warm.rounds, warm.teacher_cruise_mps
+        "imitation warm start: {} DAgger rounds of {teacher}",
+        warm.rounds
     );
     let bar = if progress {
         ProgressBar::new(u64::from(warm.rounds))
@@ -734,30 +742,23 @@ fn warm_start(
     };
     let log_path = paths.out.join("imitation.jsonl");
     let mut text = String::new();
-    let (actor, _) = crate::imitation::imitate(
-        state.learner.actor.clone(),
-        arch,
-        config,
-        warm,
-        device,
-        &mut |r| {
-            bar.inc(1);
-            bar.set_message(format!("mse {:.4}", r.mse));
-            text.push_str(&serde_json::to_string(r).unwrap_or_default());
-            text.push('\n');
-            if r.round % 5 == 0 || r.round == warm.rounds {
-                let line = format!(
-                    "round {:>3}  teacher {:.2}  {} samples  mse {:.4}  gates {:.2}/s  crashes {:.3}/s",
-                    r.round, r.teacher_share, r.samples, r.mse, r.gates_per_s, r.crash_rate_per_s
-                );
-                if progress {
-                    bar.println(line);
-                } else {
-                    println!("{line}");
-                }
+    let (actor, _) = imitate(state.learner.actor.clone(), &mut |r| {
+        bar.inc(1);
+        bar.set_message(format!("mse {:.4}", r.mse));
+        text.push_str(&serde_json::to_string(r).unwrap_or_default());
+        text.push('\n');
+        if r.round % 5 == 0 || r.round == warm.rounds {
+            let line = format!(
+                "round {:>3}  teacher {:.2}  {} samples  mse {:.4}  gates {:.2}/s  crashes {:.3}/s",
+                r.round, r.teacher_share, r.samples, r.mse, r.gates_per_s, r.crash_rate_per_s
+            );
+            if progress {
+                bar.println(line);
+            } else {
+                println!("{line}");
             }
-        },
-    )?;
+        }
+    })?;
     bar.finish_and_clear();
     write_atomically(&log_path, text.as_bytes()).map_err(io(&log_path))?;
     let elapsed = started.elapsed().as_secs_f64();
@@ -775,10 +776,18 @@ fn warm_start(
         config,
     ) {
         println!(
-            "imitation done in {elapsed:.0} s; the student, referee 45 s from the stage-1 spawn: success {:.3}, crashes {:.3}/s, best lap {}",
+            "imitation done in {elapsed:.0} s; the student, referee: success {:.3}, crashes {:.3}/s, best lap {}{}",
             r.success_rate,
             r.crash_rate,
-            r.best_lap_s.map_or("DNF".into(), |l| format!("{l:.2} s"))
+            r.best_lap_s.map_or("DNF".into(), |l| format!("{l:.2} s")),
+            if config.race.is_some() {
+                format!(
+                    ", {} overtakes ({} sustained)",
+                    r.overtakes, r.sustained_overtakes
+                )
+            } else {
+                String::new()
+            }
         );
     }
     let student = paths.out.join("warm_start.blob");
@@ -963,25 +972,43 @@ fn guard_update<A: PolicyNet, C: ValueNet>(
 pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, TrainError> {
     let (_, arch) = architecture(config)?;
     if arch.is_recurrent() {
-        if config.warm_start.is_some() {
+        run_networks::<RecurrentActor, RecurrentCritic>(config, options, |start| {
+            let Some(warm) = &config.warm_start else {
+                return Ok(());
+            };
+            let device = &options.device;
+            warm_start(
+                start.state,
+                config,
+                warm,
+                start.paths,
+                device,
+                options.progress,
+                |actor, log| {
+                    crate::imitation::imitate_recurrent(actor, &arch, config, warm, device, log)
+                },
+            )
+        })
+    } else {
+        if config.race.is_some() && config.warm_start.is_some() {
             return Err(TrainError::Unsupported(
-                "[warm_start] imitates with a feed-forward student; rows E-G cannot use it".into(),
+                "[warm_start] of a feed-forward race row (B-D) is not supported; rows E-G imitate in the race"
+                    .into(),
             ));
         }
-        run_networks::<RecurrentActor, RecurrentCritic>(config, options, |_| Ok(()))
-    } else {
         run_networks::<Actor, Critic>(config, options, |start| {
             let Some(warm) = &config.warm_start else {
                 return Ok(());
             };
+            let device = &options.device;
             warm_start(
                 start.state,
-                &arch,
                 config,
                 warm,
                 start.paths,
-                &options.device,
+                device,
                 options.progress,
+                |actor, log| crate::imitation::imitate(actor, &arch, config, warm, device, log),
             )
         })
     }
@@ -1001,12 +1028,6 @@ fn run_networks<A: PolicyNet, C: ValueNet>(
     fresh_start: impl FnOnce(FreshStart<'_, A, C>) -> Result<(), TrainError>,
 ) -> Result<RunSummary, TrainError> {
     let (_, arch) = architecture(config)?;
-    if config.race.is_some() && config.warm_start.is_some() {
-        return Err(TrainError::Unsupported(
-            "[warm_start] imitates the baseline in a time trial; a [race] config cannot use it"
-                .into(),
-        ));
-    }
     // Refuse an unreadable opponent before any work.
     make_env(
         &TrainConfig {

@@ -166,3 +166,55 @@ fn a_row_g_race_trains_exports_and_resumes() {
     let _ = std::fs::remove_dir_all(&whole);
     let _ = std::fs::remove_dir_all(&split);
 }
+
+/// The recurrent warm start fits the stage-1 teacher: in every one of four small DAgger
+/// rounds in the race, the LSTM student's error against the teacher's labels falls from the
+/// round's first epoch to its last (each round's data is harder than the last's as the
+/// student takes over the flying, so rounds are not compared with each other); and a
+/// missing teacher is an error.
+#[test]
+fn a_recurrent_student_learns_from_the_stage1_teacher() {
+    use host_trainer::config::WarmStart;
+    use host_trainer::imitation::imitate_recurrent;
+    use host_trainer::recurrent::RecurrentActor;
+    let mut c = config();
+    c.run.row = 'G';
+    c.env.num_envs = 16;
+    c.ppo.steps_per_env = 20;
+    let teacher = format!(
+        "{}/../policies/stage1_guarded.blob",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    let warm = WarmStart {
+        teacher_cruise_mps: 9.0,
+        teacher_blob: Some(teacher),
+        rounds: 4,
+        steps_per_env: 60,
+        epochs: 3,
+        minibatch: 160,
+        max_samples: 100_000,
+        learning_rate: 1e-3,
+        student_noise_std: 0.1,
+        critic_iterations: 0,
+    };
+    let arch = firmware_core::policy::Architecture::table1(firmware_core::policy::TableRow::G);
+    let device = Device::flex().autodiff();
+    let actor = RecurrentActor::new(&arch, 0.2, &mut host_trainer::model::init_rng(2), &device);
+    let (_, rounds) = imitate_recurrent(actor, &arch, &c, &warm, &device, &mut |_| {}).unwrap();
+    assert_eq!(rounds.len(), 4);
+    for r in &rounds {
+        assert!(
+            r.mse < r.mse_first_epoch,
+            "round {}: mse {} -> {}",
+            r.round,
+            r.mse_first_epoch,
+            r.mse
+        );
+    }
+
+    let mut bad = warm.clone();
+    bad.teacher_blob = Some("/nonexistent.blob".into());
+    let actor = RecurrentActor::new(&arch, 0.2, &mut host_trainer::model::init_rng(2), &device);
+    let e = imitate_recurrent(actor, &arch, &c, &bad, &device, &mut |_| {}).unwrap_err();
+    assert!(e.to_string().contains("/nonexistent.blob"), "{e}");
+}
