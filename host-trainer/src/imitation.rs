@@ -1,5 +1,6 @@
 //! The imitation warm start (DAgger, Ross et al. 2011): before PPO, the actor's mean is
-//! regressed onto the classical baseline's actions on the states that a mixture of the
+//! regressed onto a teacher's actions (the classical baseline's, or a time-trial blob's:
+//! stage 2 imitates the stage-1 policy) on the states that a mixture of the
 //! baseline and the student visits. Round `k` executes the teacher's action with
 //! probability β_k (1 → 0 over the first half of the rounds) and the student's noisy action
 //! otherwise; every visited state is labelled with the teacher's action, and the data of all
@@ -10,10 +11,10 @@
 //! track sees the progress reward from its first PPO iteration.
 
 use crate::config::{TrainConfig, WarmStart};
-use crate::env::{OBS_DIM, TrainEnv};
+use crate::env::TrainEnv;
 use crate::model::{Actor, values};
 use crate::recurrent::RecurrentActor;
-use crate::train::{TrainError, env_config, make_env};
+use crate::train::{TrainError, make_env};
 use burn::module::Module;
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Tensor, TensorData};
@@ -62,12 +63,9 @@ pub fn imitate(
     device: &Device,
     log: &mut dyn FnMut(&ImitationRound),
 ) -> Result<(Actor, Vec<ImitationRound>), TrainError> {
-    let preset = Preset::by_name(&config.env.preset).unwrap_or_else(Preset::paper);
-    let mut teacher_config = sitl::pilot::baseline_config_for(&preset);
-    teacher_config.cruise_speed_mps = warm.teacher_cruise_mps;
-    let teacher = BaselineController::new(teacher_config, Track::figure_eight());
-    let mut env = TrainEnv::new(env_config(config, config.run.seed ^ 0x0da6_9e12)?);
-    let n = env.num_envs();
+    let teacher = Teacher::of(config, warm)?;
+    let mut env = make_env(config, config.run.seed ^ 0x0da6_9e12)?;
+    let (n, obs_dim) = (env.num_envs(), env.obs_dim());
     let mut rng = ChaCha8Rng::seed_from_u64(config.run.seed);
     rng.set_stream(u64::MAX - 3);
     let mut optim = crate::ppo::adam();
@@ -80,22 +78,22 @@ pub fn imitate(
     for round in 0..warm.rounds {
         let beta = (1.0 - f64::from(round) / f64::from(half)).max(0.0);
         let payload = actor.payload();
-        let Ok(Policy::A(net)) = Policy::from_payload(arch, &payload) else {
-            return Err(TrainError::Unsupported("imitation: row A only".into()));
-        };
+        let policy = Policy::from_payload(arch, &payload)
+            .map_err(|e| TrainError::Unsupported(format!("imitation: {e}")))?;
         let mut from_teacher = 0usize;
         for _ in 0..warm.steps_per_env {
             let obs = env.observations().to_vec();
-            env.teacher_actions(&teacher, &mut labels);
+            teacher.label(&env, &mut labels);
             for e in 0..n {
                 let out = &mut executed[e * ACTION_DIM..(e + 1) * ACTION_DIM];
                 if rng.random::<f64>() < beta {
                     out.copy_from_slice(&labels[e * ACTION_DIM..(e + 1) * ACTION_DIM]);
                     from_teacher += 1;
                 } else {
-                    let o = <&[f32; OBS_DIM]>::try_from(&obs[e * OBS_DIM..(e + 1) * OBS_DIM])
-                        .map_err(|_| TrainError::Unsupported("observation size".into()))?;
-                    let mean = net.forward(o);
+                    let mut stateless = firmware_core::policy::PolicyState::Stateless;
+                    let mean = Observation::from_values(&obs[e * obs_dim..(e + 1) * obs_dim])
+                        .and_then(|o| policy.act(&o, &mut stateless))
+                        .ok_or_else(|| TrainError::Unsupported("observation size".into()))?;
                     for k in 0..ACTION_DIM {
                         out[k] = mean[k] + warm.student_noise_std * crate::train::normal(&mut rng);
                     }
@@ -108,7 +106,7 @@ pub fn imitate(
         }
         let stats = env.take_stats();
         let excess = (data_act.len() / ACTION_DIM).saturating_sub(warm.max_samples);
-        data_obs.drain(..excess * OBS_DIM);
+        data_obs.drain(..excess * obs_dim);
         data_act.drain(..excess * ACTION_DIM);
 
         // Regression of the mean onto the labels.
@@ -119,14 +117,14 @@ pub fn imitate(
             order.shuffle(&mut rng);
             let (mut sum, mut batches) = (0.0, 0.0);
             for idx in order.chunks(warm.minibatch) {
-                let mut o = Vec::with_capacity(idx.len() * OBS_DIM);
+                let mut o = Vec::with_capacity(idx.len() * obs_dim);
                 let mut a = Vec::with_capacity(idx.len() * ACTION_DIM);
                 for &i in idx {
-                    o.extend_from_slice(&data_obs[i * OBS_DIM..(i + 1) * OBS_DIM]);
+                    o.extend_from_slice(&data_obs[i * obs_dim..(i + 1) * obs_dim]);
                     a.extend_from_slice(&data_act[i * ACTION_DIM..(i + 1) * ACTION_DIM]);
                 }
                 let obs_t =
-                    Tensor::<2>::from_data(TensorData::new(o, [idx.len(), OBS_DIM]), device);
+                    Tensor::<2>::from_data(TensorData::new(o, [idx.len(), obs_dim]), device);
                 let act_t =
                     Tensor::<2>::from_data(TensorData::new(a, [idx.len(), ACTION_DIM]), device);
                 let loss = (actor.mean(obs_t) - act_t).square().mean();

@@ -990,12 +990,6 @@ pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, Tra
             )
         })
     } else {
-        if config.race.is_some() && config.warm_start.is_some() {
-            return Err(TrainError::Unsupported(
-                "[warm_start] of a feed-forward race row (B-D) is not supported; rows E-G imitate in the race"
-                    .into(),
-            ));
-        }
         run_networks::<Actor, Critic>(config, options, |start| {
             let Some(warm) = &config.warm_start else {
                 return Ok(());

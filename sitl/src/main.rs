@@ -147,6 +147,35 @@ struct Scoring {
     /// Also write the report as JSON to this file (`sitl race` adds the controllers' links).
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Also record every episode's positions and overtakes as JSON to this file (for
+    /// `cargo run -p tools -- overtake-figure`).
+    #[arg(long)]
+    trace: Option<PathBuf>,
+}
+
+impl Scoring {
+    /// Writes the recorded episodes to `--trace`, if given.
+    fn write_traces(
+        &self,
+        pilots: &[String],
+        preset: &Preset,
+        episodes: &[sitl::referee::Episode],
+    ) -> Result<(), String> {
+        let Some(path) = &self.trace else {
+            return Ok(());
+        };
+        let json = serde_json::json!({
+            "format": sitl::referee::TRACES_FORMAT,
+            "pilots": pilots,
+            "preset": preset.name,
+            "seed": self.seed,
+            "episodes": episodes.iter().map(|e| e.trace.to_json()).collect::<Vec<_>>(),
+        });
+        sitl::files::write_atomically(path, json.to_string().as_bytes())
+            .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+        eprintln!("wrote {}", path.display());
+        Ok(())
+    }
 }
 
 impl Scoring {
@@ -231,7 +260,12 @@ fn eval(args: EvalArgs) -> Result<(), String> {
     }
     let config = args.scoring.eval_config(&args.common);
     let started = std::time::Instant::now();
-    let episodes = evaluate(&ego, opponent.as_ref(), &config, args.plot.is_some());
+    let record = args.plot.is_some() || args.scoring.trace.is_some();
+    let episodes = evaluate(&ego, opponent.as_ref(), &config, record);
+    let pilots: Vec<String> = core::iter::once(ego.describe())
+        .chain(opponent.as_ref().map(PilotSpec::describe))
+        .collect();
+    args.scoring.write_traces(&pilots, &preset, &episodes)?;
     if let (Some(path), Some(first)) = (&args.plot, episodes.first()) {
         let title = format!(
             "{}{}, episode 0 ({} preset, seed {})",
@@ -389,7 +423,7 @@ fn race(args: RaceArgs) -> Result<ExitCode, String> {
     config.gcs_rate_hz = args.gcs_rate_hz;
     config.realtime = args.realtime;
     config.tlog = !args.no_tlog;
-    config.record = !args.no_plot;
+    config.record = !args.no_plot || args.scoring.trace.is_some();
     config.step_timeout = std::time::Duration::from_millis(args.step_timeout_ms);
     let mut entrants = vec![Entrant {
         role: "ego".into(),
@@ -446,7 +480,10 @@ fn race(args: RaceArgs) -> Result<ExitCode, String> {
             outcome.tlog.len()
         );
     }
-    if let (true, Some(first)) = (config.record, outcome.episodes.first()) {
+    let pilots: Vec<String> = entrants.iter().map(|e| e.pilot.describe()).collect();
+    args.scoring
+        .write_traces(&pilots, &preset, &outcome.episodes)?;
+    if let (false, Some(first)) = (args.no_plot, outcome.episodes.first()) {
         let title = format!(
             "{} over MAVLink, episode 0 ({} preset, seed {})",
             entrants

@@ -177,12 +177,39 @@ fn fmt_tick(v: f64, step: f64) -> String {
 /// 1.6 m wide across their direction of travel with their index, the ego's path (blue) and
 /// the opponent's (magenta), broken at respawns.
 pub fn top_down(track: &Track<'_>, trace: &Trace, title: &str) -> String {
-    // Bounds: the gates and every finite point flown, with a 1.5 m margin.
+    let steps = trace.ego_m.len().max(trace.opponent_m.len());
+    top_down_window(track, trace, 0..steps, true, title)
+}
+
+/// [`top_down`] of the steps `window` only: the view is fitted to what was flown in the
+/// window (with the whole track's gates when `whole_track`), every second of the window is
+/// marked on both paths with its time, and the window's overtakes (`trace.overtakes`) with
+/// a ring on the ego and "overtake" (or "sustained overtake").
+pub fn top_down_window(
+    track: &Track<'_>,
+    trace: &Trace,
+    window: core::ops::Range<usize>,
+    whole_track: bool,
+    title: &str,
+) -> String {
+    let in_window = |path: &[Vec3]| -> Vec<Vec3> {
+        path.get(window.start.min(path.len())..window.end.min(path.len()))
+            .unwrap_or(&[])
+            .to_vec()
+    };
+    let (ego, opp) = (in_window(&trace.ego_m), in_window(&trace.opponent_m));
+    // Bounds: what was flown in the window (and the gates, for the whole track), with a
+    // 1.5 m margin.
     let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    let gates = track.gates().iter().map(|g| g.center_m);
+    let gates: Vec<Vec3> = if whole_track {
+        track.gates().iter().map(|g| g.center_m).collect()
+    } else {
+        Vec::new()
+    };
     for p in gates
-        .chain(trace.ego_m.iter().copied())
-        .chain(trace.opponent_m.iter().copied())
+        .iter()
+        .chain(&ego)
+        .chain(&opp)
         .filter(|p| p.is_finite())
     {
         x0 = x0.min(f64::from(p.x));
@@ -196,7 +223,7 @@ pub fn top_down(track: &Track<'_>, trace: &Trace, title: &str) -> String {
     // Far excursions (a drone leaving the track) are clipped at 30 m around the origin.
     let (x0, x1) = ((x0 - 1.5).max(-30.0), (x1 + 1.5).min(30.0));
     let (y0, y1) = ((y0 - 1.5).max(-30.0), (y1 + 1.5).min(30.0));
-    let scale = 780.0 / (x1 - x0);
+    let scale = 780.0 / (x1 - x0).max(y1 - y0);
     let (w, h) = ((x1 - x0) * scale, (y1 - y0) * scale + 50.0);
     let px = |p: Vec3| {
         (
@@ -209,7 +236,10 @@ pub fn top_down(track: &Track<'_>, trace: &Trace, title: &str) -> String {
         svg,
         r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="sans-serif" font-size="12">
 <rect width="100%" height="100%" fill="white"/>
-<text x="{}" y="20" text-anchor="middle" font-size="15">{}</text>"##,
+<clipPath id="view"><rect x="0" y="30" width="{w}" height="{}"/></clipPath>
+<text x="{}" y="20" text-anchor="middle" font-size="15">{}</text>
+<g clip-path="url(#view)">"##,
+        h - 50.0,
         w / 2.0,
         escape(title)
     );
@@ -238,15 +268,20 @@ pub fn top_down(track: &Track<'_>, trace: &Trace, title: &str) -> String {
             r##"<line x1="{ax:.1}" y1="{ay:.1}" x2="{bx:.1}" y2="{by:.1}" stroke="#222" stroke-width="4"/><text x="{cx:.1}" y="{cy:.1}" text-anchor="middle" fill="#222">g{k}</text>"##
         );
     }
-    for (path, color, name) in [
-        (&trace.ego_m, "#1f5fd6", "ego"),
-        (&trace.opponent_m, "#d61fb4", "opponent"),
-    ] {
+    let per_second = (1.0 / f64::from(trace.dt_s.max(1e-3))).round().max(1.0) as usize;
+    let marked = window.len() < 20 * per_second;
+    for (path, color, name) in [(&ego, "#1f5fd6", "ego"), (&opp, "#d61fb4", "opponent")] {
         if path.is_empty() {
             continue;
         }
         let mut start = 0usize;
-        let mut cuts: Vec<usize> = trace.respawns.iter().map(|&k| k as usize).collect();
+        let mut cuts: Vec<usize> = trace
+            .respawns
+            .iter()
+            .map(|&k| k as usize)
+            .filter(|k| window.contains(k))
+            .map(|k| k - window.start)
+            .collect();
         cuts.push(path.len());
         for end in cuts {
             let seg: Vec<String> = path
@@ -268,10 +303,49 @@ pub fn top_down(track: &Track<'_>, trace: &Trace, title: &str) -> String {
             }
             start = end;
         }
+        // Seconds along a short window's paths, so the two drones can be compared in time.
+        if marked {
+            for (i, p) in path
+                .iter()
+                .enumerate()
+                .filter(|(i, p)| (window.start + i + 1) % per_second == 0 && p.is_finite())
+            {
+                let (x, y) = px(*p);
+                let t = (window.start + i + 1) as f64 * f64::from(trace.dt_s);
+                let _ = writeln!(
+                    svg,
+                    r##"<circle cx="{x:.1}" cy="{y:.1}" r="3" fill="{color}"/><text x="{:.1}" y="{:.1}" fill="{color}" font-size="10">{t:.0} s</text>"##,
+                    x + 4.0,
+                    y - 4.0
+                );
+            }
+        }
+    }
+    for mark in trace
+        .overtakes
+        .iter()
+        .filter(|m| window.contains(&(m.step as usize)))
+    {
+        let Some(p) = trace.ego_m.get((mark.step as usize).saturating_sub(1)) else {
+            continue;
+        };
+        let (x, y) = px(*p);
+        let label = if mark.sustained {
+            "sustained overtake"
+        } else {
+            "overtake"
+        };
+        let t = f64::from(mark.step) * f64::from(trace.dt_s);
+        let _ = writeln!(
+            svg,
+            r##"<circle cx="{x:.1}" cy="{y:.1}" r="8" fill="none" stroke="#e07000" stroke-width="2.5"/><text x="{:.1}" y="{:.1}" fill="#e07000" font-weight="bold">{label} at {t:.2} s</text>"##,
+            x + 10.0,
+            y + 14.0
+        );
     }
     let _ = writeln!(
         svg,
-        r##"<text x="10" y="{}" fill="#1f5fd6">ego</text><text x="45" y="{}" fill="#d61fb4">opponent</text><text x="{}" y="{}" text-anchor="end" fill="#666">1 m = {scale:.1} px</text>"##,
+        r##"</g><text x="10" y="{}" fill="#1f5fd6">ego</text><text x="45" y="{}" fill="#d61fb4">opponent</text><text x="{}" y="{}" text-anchor="end" fill="#666">1 m = {scale:.1} px</text>"##,
         h - 10.0,
         h - 10.0,
         w - 10.0,

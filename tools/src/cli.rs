@@ -5,7 +5,44 @@ use std::process::ExitCode;
 
 use firmware_core::policy::TableRow;
 
-use crate::{cortex_m, inspect, size};
+use crate::{cortex_m, figure, inspect, size};
+
+fn parse_figure(args: &[&str]) -> Result<Command, String> {
+    let (mut trace, mut episode, mut overtake, mut window_s, mut out) =
+        (None, None, None, 8.0f32, PathBuf::from("overtake.svg"));
+    let mut it = args.iter();
+    while let Some(flag) = it.next() {
+        let value = it.next().ok_or_else(|| format!("{flag} needs a value"))?;
+        let index = |v: &str| {
+            v.parse::<usize>()
+                .map_err(|_| format!("{flag} takes a non-negative integer, not `{v}`"))
+        };
+        match *flag {
+            "--trace" => trace = Some(PathBuf::from(value)),
+            "--episode" => episode = Some(index(value)?),
+            "--overtake" => overtake = Some(index(value)?),
+            "--window-s" => {
+                window_s = match value.parse::<f32>() {
+                    Ok(v) if v > 0.0 && v <= 60.0 => v,
+                    _ => {
+                        return Err(format!(
+                            "--window-s takes seconds in (0, 60], not `{value}`"
+                        ));
+                    }
+                }
+            }
+            "--out" => out = PathBuf::from(value),
+            other => return Err(format!("overtake-figure: unknown flag `{other}`")),
+        }
+    }
+    Ok(Command::OvertakeFigure(figure::FigureArgs {
+        trace: trace.ok_or("overtake-figure needs --trace FILE (from `sitl race --trace FILE`)")?,
+        episode,
+        overtake,
+        window_s,
+        out,
+    }))
+}
 
 fn parse_synth(args: &[&str]) -> Result<Command, String> {
     let (mut row, mut seed, mut out) = (None, 1u64, None);
@@ -65,13 +102,17 @@ subcommands:
   synth-blob --row X [--seed N] --out FILE
                             write a blob of Table 1 row X (A-G) with seeded random
                             weights: for trying the tools, never for flight
+  overtake-figure --trace FILE [--episode N] [--overtake K] [--window-s S] [--out F.svg]
+                            draw an overtake of a recorded race from above (the paper's
+                            Fig. 3): the ego's and opponent's paths over S seconds (8)
+                            around it; FILE from `sitl race --trace` or `sitl eval --trace`
   cortex-m test             build and run the Cortex-M4 test image under QEMU
   cortex-m icount           instructions per Controller::step on the emulated Cortex-M4
                             (QEMU -icount shift=0); --breakdown: per layer and kernel
   help                      print this text";
 
 /// A parsed command line.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub enum Command {
     /// Print the usage.
     Help,
@@ -88,6 +129,8 @@ pub enum Command {
         /// Output file.
         out: PathBuf,
     },
+    /// Draw an overtake from a recorded race.
+    OvertakeFigure(figure::FigureArgs),
     /// Run the QEMU test image.
     CortexMTest,
     /// Run the instruction-count bench (`breakdown`: the per-layer image).
@@ -108,6 +151,7 @@ pub fn parse(args: &[String]) -> Result<Command, String> {
         ["size-report"] => Ok(Command::SizeReport),
         ["size-report", ..] => Err("size-report takes no arguments".into()),
         ["synth-blob", rest @ ..] => parse_synth(rest),
+        ["overtake-figure", rest @ ..] => parse_figure(rest),
         ["cortex-m", "test"] => Ok(Command::CortexMTest),
         ["cortex-m", "icount"] => Ok(Command::CortexMIcount { breakdown: false }),
         ["cortex-m", "icount", "--breakdown"] => Ok(Command::CortexMIcount { breakdown: true }),
@@ -133,6 +177,7 @@ pub fn main(args: Vec<String>) -> ExitCode {
         Command::Inspect(path) => inspect::run(&path),
         Command::SizeReport => size::run(),
         Command::SynthBlob { row, seed, out } => synth_blob(row, seed, &out),
+        Command::OvertakeFigure(args) => figure::run(&args),
         Command::CortexMTest => cortex_m::run_tests(),
         Command::CortexMIcount { breakdown } => cortex_m::run_icount(breakdown),
     };

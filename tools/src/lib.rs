@@ -4,6 +4,8 @@
 //!   typed [`firmware_core::BlobError`] (non-zero exit);
 //! * `size-report`: build the Cortex-M4 size images (one f32 blob each, rows A and G, profile
 //!   `firmware`) and report their flash and RAM from the ELF against an STM32F405;
+//! * `overtake-figure --trace FILE`: an overtake of a recorded race drawn from above, like
+//!   the paper's Fig. 3 ([`figure`]);
 //! * `cortex-m test`, `cortex-m icount [--breakdown]`: run the QEMU test image or the
 //!   instruction-count bench (`tools/cortex-m-tests`, see `docs/cortex-m.md`).
 //!
@@ -13,6 +15,7 @@
 pub mod cli;
 pub mod cortex_m;
 pub mod error;
+pub mod figure;
 pub mod inspect;
 pub mod size;
 
