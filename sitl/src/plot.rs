@@ -308,7 +308,7 @@ pub fn top_down_window(
             for (i, p) in path
                 .iter()
                 .enumerate()
-                .filter(|(i, p)| (window.start + i + 1) % per_second == 0 && p.is_finite())
+                .filter(|(i, p)| (window.start + i + 1).is_multiple_of(per_second) && p.is_finite())
             {
                 let (x, y) = px(*p);
                 let t = (window.start + i + 1) as f64 * f64::from(trace.dt_s);
