@@ -49,6 +49,46 @@ pub struct ImitationRound {
     pub crash_rate_per_s: f64,
 }
 
+/// An actor the warm start can train: the feed-forward one by [`imitate`], the recurrent
+/// one by [`imitate_recurrent`].
+pub trait Imitate: crate::ppo::PolicyNet {
+    /// Runs the warm start on `self` and returns the student with the rounds' statistics.
+    fn imitate(
+        self,
+        arch: &Architecture,
+        config: &TrainConfig,
+        warm: &WarmStart,
+        device: &Device,
+        log: &mut dyn FnMut(&ImitationRound),
+    ) -> Result<(Self, Vec<ImitationRound>), TrainError>;
+}
+
+impl Imitate for Actor {
+    fn imitate(
+        self,
+        arch: &Architecture,
+        config: &TrainConfig,
+        warm: &WarmStart,
+        device: &Device,
+        log: &mut dyn FnMut(&ImitationRound),
+    ) -> Result<(Self, Vec<ImitationRound>), TrainError> {
+        imitate(self, arch, config, warm, device, log)
+    }
+}
+
+impl Imitate for RecurrentActor {
+    fn imitate(
+        self,
+        arch: &Architecture,
+        config: &TrainConfig,
+        warm: &WarmStart,
+        device: &Device,
+        log: &mut dyn FnMut(&ImitationRound),
+    ) -> Result<(Self, Vec<ImitationRound>), TrainError> {
+        imitate_recurrent(self, arch, config, warm, device, log)
+    }
+}
+
 fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }

@@ -29,6 +29,7 @@
 
 use crate::config::{Guard, TrainConfig};
 use crate::env::{EnvConfig, EnvStats, RaceConfig, TrainEnv};
+use crate::imitation::Imitate;
 use crate::model::{Actor, Critic, init_rng};
 use crate::ppo::{Learner, PolicyNet, Rollout, UpdateStats, ValueNet, adam};
 use crate::recurrent::{RecurrentActor, RecurrentCritic};
@@ -972,54 +973,16 @@ fn guard_update<A: PolicyNet, C: ValueNet>(
 pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, TrainError> {
     let (_, arch) = architecture(config)?;
     if arch.is_recurrent() {
-        run_networks::<RecurrentActor, RecurrentCritic>(config, options, |start| {
-            let Some(warm) = &config.warm_start else {
-                return Ok(());
-            };
-            let device = &options.device;
-            warm_start(
-                start.state,
-                config,
-                warm,
-                start.paths,
-                device,
-                options.progress,
-                |actor, log| {
-                    crate::imitation::imitate_recurrent(actor, &arch, config, warm, device, log)
-                },
-            )
-        })
+        run_networks::<RecurrentActor, RecurrentCritic>(config, options)
     } else {
-        run_networks::<Actor, Critic>(config, options, |start| {
-            let Some(warm) = &config.warm_start else {
-                return Ok(());
-            };
-            let device = &options.device;
-            warm_start(
-                start.state,
-                config,
-                warm,
-                start.paths,
-                device,
-                options.progress,
-                |actor, log| crate::imitation::imitate(actor, &arch, config, warm, device, log),
-            )
-        })
+        run_networks::<Actor, Critic>(config, options)
     }
 }
 
-/// What a fresh run's set-up step (the imitation warm start) may change.
-struct FreshStart<'a, A, C> {
-    state: &'a mut RunState<A, C>,
-    paths: &'a Paths,
-}
-
-/// [`run`] for one pair of networks; `fresh_start` runs once at the start of a new run
-/// that was not given `--init-actor`.
-fn run_networks<A: PolicyNet, C: ValueNet>(
+/// [`run`] for one pair of networks.
+fn run_networks<A: Imitate, C: ValueNet>(
     config: &TrainConfig,
     options: &RunOptions,
-    fresh_start: impl FnOnce(FreshStart<'_, A, C>) -> Result<(), TrainError>,
 ) -> Result<RunSummary, TrainError> {
     let (_, arch) = architecture(config)?;
     // Refuse an unreadable opponent before any work.
@@ -1073,11 +1036,16 @@ fn run_networks<A: PolicyNet, C: ValueNet>(
             println!("actor initialised from {}", path.display());
             std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
             save_checkpoint(&paths, &state, config)?;
-        } else {
-            fresh_start(FreshStart {
-                state: &mut state,
-                paths: &paths,
-            })?;
+        } else if let Some(warm) = &config.warm_start {
+            warm_start(
+                &mut state,
+                config,
+                warm,
+                &paths,
+                &device,
+                options.progress,
+                |actor, log| A::imitate(actor, &arch, config, warm, &device, log),
+            )?;
         }
     }
     let config_text = toml::to_string(config).unwrap_or_default();
