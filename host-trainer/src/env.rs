@@ -376,14 +376,19 @@ impl TrainEnv {
             slot.steps = steps;
             env.slots.push(slot);
         }
-        for (slot, obs) in env
+        env.observe_all();
+        Ok(env)
+    }
+
+    /// Every env's observation from its current state.
+    fn observe_all(&mut self) {
+        for (slot, obs) in self
             .slots
             .iter()
-            .zip(env.observations.chunks_exact_mut(obs_dim))
+            .zip(self.observations.chunks_exact_mut(self.obs_dim))
         {
-            observe(&env.world, &env.spec, slot, obs);
+            observe(&self.world, &self.spec, slot, obs);
         }
-        Ok(env)
     }
 
     fn spawn_rule(&self) -> SpawnRule {
@@ -557,13 +562,7 @@ impl TrainEnv {
         for slot in &mut self.slots {
             respawn(&self.world, &self.line, &rule, slot);
         }
-        for (slot, obs) in self
-            .slots
-            .iter()
-            .zip(self.observations.chunks_exact_mut(self.obs_dim))
-        {
-            observe(&self.world, &self.spec, slot, obs);
-        }
+        self.observe_all();
     }
 
     /// The statistics since the last call, summed over envs, and reset.

@@ -93,6 +93,18 @@ fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
 
+/// The teacher, the environment and the generator of a warm start (its own seeds).
+fn set_up(
+    config: &TrainConfig,
+    warm: &WarmStart,
+) -> Result<(Teacher, TrainEnv, ChaCha8Rng), TrainError> {
+    let teacher = Teacher::of(config, warm)?;
+    let env = make_env(config, config.run.seed ^ 0x0da6_9e12)?;
+    let mut rng = ChaCha8Rng::seed_from_u64(config.run.seed);
+    rng.set_stream(u64::MAX - 3);
+    Ok((teacher, env, rng))
+}
+
 /// Runs the warm start on `actor` and returns the student (σ unchanged) with the rounds'
 /// statistics; `log` receives one line per round.
 pub fn imitate(
@@ -103,11 +115,8 @@ pub fn imitate(
     device: &Device,
     log: &mut dyn FnMut(&ImitationRound),
 ) -> Result<(Actor, Vec<ImitationRound>), TrainError> {
-    let teacher = Teacher::of(config, warm)?;
-    let mut env = make_env(config, config.run.seed ^ 0x0da6_9e12)?;
+    let (teacher, mut env, mut rng) = set_up(config, warm)?;
     let (n, obs_dim) = (env.num_envs(), env.obs_dim());
-    let mut rng = ChaCha8Rng::seed_from_u64(config.run.seed);
-    rng.set_stream(u64::MAX - 3);
     let mut optim = crate::ppo::adam();
     let mut data_obs: Vec<f32> = Vec::new();
     let mut data_act: Vec<f32> = Vec::new();
@@ -268,13 +277,10 @@ pub fn imitate_recurrent(
     device: &Device,
     log: &mut dyn FnMut(&ImitationRound),
 ) -> Result<(RecurrentActor, Vec<ImitationRound>), TrainError> {
-    let teacher = Teacher::of(config, warm)?;
-    let mut env = make_env(config, config.run.seed ^ 0x0da6_9e12)?;
+    let (teacher, mut env, mut rng) = set_up(config, warm)?;
     let (n, obs_dim) = (env.num_envs(), env.obs_dim());
     let window = config.ppo.steps_per_env.max(1);
     let envs_per_batch = (warm.minibatch / window).clamp(1, n);
-    let mut rng = ChaCha8Rng::seed_from_u64(config.run.seed);
-    rng.set_stream(u64::MAX - 3);
     let mut optim = crate::ppo::adam();
     let mut data: Vec<Round> = Vec::new();
     let mut labels = vec![0.0f32; n * ACTION_DIM];
