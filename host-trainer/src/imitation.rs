@@ -377,39 +377,72 @@ pub fn imitate_recurrent(
                 crate::recurrent::LstmState::width(actor.net.lstm.len(), actor.net.hidden());
             for (ri, t0, len, si, group) in batches {
                 let r = &data[ri];
-                let b = group.len();
-                let (mut o, mut a, mut k, mut h0) = (
-                    Vec::with_capacity(len * b * obs_dim),
-                    Vec::with_capacity(len * b * ACTION_DIM),
-                    Vec::with_capacity(len * b),
-                    Vec::with_capacity(b * width),
-                );
-                for t in t0..t0 + len {
-                    for &e in &group {
-                        let i = t * n + e;
-                        o.extend_from_slice(&r.obs[i * obs_dim..(i + 1) * obs_dim]);
-                        a.extend_from_slice(&r.labels[i * ACTION_DIM..(i + 1) * ACTION_DIM]);
-                        k.push(r.keep[i]);
+                // The windows of `envs`: their mean squared error's gradient and value.
+                let pass = |actor: &RecurrentActor, envs: &[usize]| -> (GradientsParams, f64) {
+                    let b = envs.len();
+                    let (mut o, mut a, mut k, mut h0) = (
+                        Vec::with_capacity(len * b * obs_dim),
+                        Vec::with_capacity(len * b * ACTION_DIM),
+                        Vec::with_capacity(len * b),
+                        Vec::with_capacity(b * width),
+                    );
+                    for t in t0..t0 + len {
+                        for &e in envs {
+                            let i = t * n + e;
+                            o.extend_from_slice(&r.obs[i * obs_dim..(i + 1) * obs_dim]);
+                            a.extend_from_slice(&r.labels[i * ACTION_DIM..(i + 1) * ACTION_DIM]);
+                            k.push(r.keep[i]);
+                        }
                     }
-                }
-                for &e in &group {
-                    h0.extend_from_slice(&starts[si][e * width..(e + 1) * width]);
-                }
-                let obs = Tensor::<2>::from_data(TensorData::new(o, [len * b, obs_dim]), device)
-                    .reshape([len, b, obs_dim]);
-                let keep = Tensor::<2>::from_data(TensorData::new(k, [len, b]), device);
-                let act = Tensor::<2>::from_data(TensorData::new(a, [len * b, ACTION_DIM]), device);
-                let state = crate::recurrent::LstmState::from_flat(
-                    &h0,
-                    actor.net.lstm.len(),
-                    actor.net.hidden(),
-                    device,
-                );
-                let (mean, _) = actor.net.sequence(obs, keep, state);
-                let loss = (mean - act).square().mean();
-                sum += f64::from(values(loss.clone().inner()).first().copied().unwrap_or(0.0));
+                    for &e in envs {
+                        h0.extend_from_slice(&starts[si][e * width..(e + 1) * width]);
+                    }
+                    let obs =
+                        Tensor::<2>::from_data(TensorData::new(o, [len * b, obs_dim]), device)
+                            .reshape([len, b, obs_dim]);
+                    let keep = Tensor::<2>::from_data(TensorData::new(k, [len, b]), device);
+                    let act =
+                        Tensor::<2>::from_data(TensorData::new(a, [len * b, ACTION_DIM]), device);
+                    let state = crate::recurrent::LstmState::from_flat(
+                        &h0,
+                        actor.net.lstm.len(),
+                        actor.net.hidden(),
+                        device,
+                    );
+                    let (mean, _) = actor.net.sequence(obs, keep, state);
+                    let loss = (mean - act).square().mean();
+                    let value =
+                        f64::from(values(loss.clone().inner()).first().copied().unwrap_or(0.0));
+                    (GradientsParams::from_grads(loss.backward(), actor), value)
+                };
+                // The two halves of the minibatch on the two cores: the mean over the whole
+                // minibatch is the size-weighted mean of the halves' means, and so is its
+                // gradient. The second half runs on a copy of the actor with parameters of
+                // its own (burn's autodiff cannot run two backward passes through shared
+                // parameters at once); its gradients are moved onto the actor's.
+                let (left, right) = group.split_at(group.len() / 2);
+                let (grads, value) = if left.is_empty() {
+                    pass(&actor, right)
+                } else {
+                    let twin = RecurrentActor::from_payload(
+                        arch,
+                        &actor.net.payload(),
+                        &actor.std(),
+                        device,
+                    )
+                    .ok_or_else(|| TrainError::Unsupported("imitation: actor copy".into()))?;
+                    let ((gl, vl), (gr, vr)) = std::thread::scope(|sc| {
+                        let job = sc.spawn(|| pass(&twin, left));
+                        let r = pass(&actor, right);
+                        (job.join().unwrap_or_else(|e| std::panic::resume_unwind(e)), r)
+                    });
+                    let gl = crate::ppo::transfer_gradients(&twin, gl, &actor);
+                    let wl = left.len() as f32 / group.len() as f32;
+                    let grads = crate::ppo::weighted_sum(&actor, gl, wl, gr, 1.0 - wl);
+                    (grads, f64::from(wl) * vl + f64::from(1.0 - wl) * vr)
+                };
+                sum += value;
                 count += 1.0;
-                let grads = GradientsParams::from_grads(loss.backward(), &actor);
                 actor = optim.step(warm.learning_rate, actor, grads);
             }
             mse = sum / f64::max(count, 1.0);

@@ -601,6 +601,95 @@ impl ModuleVisitor for Flatten<'_> {
     }
 }
 
+/// The gradients of `module`'s parameters, flattened in visiting order.
+pub fn flatten_gradients<M: Module>(module: &M, grads: &GradientsParams) -> Vec<f32> {
+    let mut v = Flatten {
+        grads,
+        out: Vec::new(),
+    };
+    module.visit(&mut v);
+    v.out
+}
+
+/// `grads` of `from`'s parameters, registered under the ids of `to`'s (a copy of `from`
+/// with the same structure and fresh parameter ids), matched in visiting order.
+pub fn transfer_gradients<M: Module>(from: &M, grads: GradientsParams, to: &M) -> GradientsParams {
+    struct Take {
+        grads: GradientsParams,
+        taken: Vec<Option<Vec<f32>>>,
+    }
+    impl ModuleVisitor for Take {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let g = self.grads.remove::<D>(param.id);
+            self.taken.push(g.map(values));
+        }
+    }
+    struct Give {
+        taken: std::vec::IntoIter<Option<Vec<f32>>>,
+        out: GradientsParams,
+    }
+    impl ModuleVisitor for Give {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if let Some(Some(g)) = self.taken.next() {
+                let v = param.val();
+                let t = Tensor::<D>::from_data(TensorData::new(g, v.dims()), &v.device());
+                self.out.register(param.id, t);
+            }
+        }
+    }
+    let mut take = Take {
+        grads,
+        taken: Vec::new(),
+    };
+    from.visit(&mut take);
+    let mut give = Give {
+        taken: take.taken.into_iter(),
+        out: GradientsParams::new(),
+    };
+    to.visit(&mut give);
+    give.out
+}
+
+/// `wa · a + wb · b` for every parameter of `module` (gradients of two parts of one
+/// minibatch, computed apart).
+pub fn weighted_sum<M: Module>(
+    module: &M,
+    a: GradientsParams,
+    wa: f32,
+    b: GradientsParams,
+    wb: f32,
+) -> GradientsParams {
+    struct Sum {
+        a: GradientsParams,
+        b: GradientsParams,
+        out: GradientsParams,
+        wa: f32,
+        wb: f32,
+    }
+    impl ModuleVisitor for Sum {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let g = match (self.a.remove::<D>(param.id), self.b.remove::<D>(param.id)) {
+                (Some(x), Some(y)) => Some(x.mul_scalar(self.wa) + y.mul_scalar(self.wb)),
+                (Some(x), None) => Some(x.mul_scalar(self.wa)),
+                (None, Some(y)) => Some(y.mul_scalar(self.wb)),
+                (None, None) => None,
+            };
+            if let Some(g) = g {
+                self.out.register(param.id, g);
+            }
+        }
+    }
+    let mut v = Sum {
+        a,
+        b,
+        out: GradientsParams::new(),
+        wa,
+        wb,
+    };
+    module.visit(&mut v);
+    v.out
+}
+
 fn squared_norm<M: Module>(module: &M, grads: &GradientsParams) -> f64 {
     let mut v = SquaredNorm { grads, sum: 0.0 };
     module.visit(&mut v);
@@ -840,13 +929,7 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
     /// it is the policy-gradient estimate the first Adam step follows. For measuring its
     /// signal-to-noise ratio across independent rollouts (`examples/gradient_snr.rs`).
     pub fn actor_gradient(&self, batch: &Batch, p: &PpoConfig) -> Vec<f32> {
-        let grads = self.actor_gradients(batch, p);
-        let mut v = Flatten {
-            grads: &grads,
-            out: Vec::new(),
-        };
-        self.actor.visit(&mut v);
-        v.out
+        flatten_gradients(&self.actor, &self.actor_gradients(batch, p))
     }
 
     /// A learner with copies of the networks and fresh optimisers (for diagnostics that

@@ -201,3 +201,59 @@ fn the_update_sees_the_rollouts_recurrent_states() {
     assert_eq!(mb.samples.len(), 2 * steps);
     assert_eq!(&mb.samples[..3], &[3, 7, envs + 3]);
 }
+
+/// The recurrent warm start splits each minibatch over the two cores: the size-weighted sum
+/// of the two halves' gradients, one half on a copy of the actor on another thread (its
+/// gradients moved onto the actor's parameters), is the gradient of the whole minibatch's
+/// mean squared error (to rounding).
+#[test]
+fn two_halves_of_a_minibatch_give_its_gradient() {
+    use burn::optim::GradientsParams;
+    use host_trainer::ppo::{flatten_gradients, transfer_gradients, weighted_sum};
+    let device = Device::flex().autodiff();
+    let arch = Architecture::table1(TableRow::G);
+    let actor = RecurrentActor::new(&arch, 0.5, &mut init_rng(9), &device);
+    let (steps, envs, obs_dim) = (12usize, 5usize, 30usize);
+    let mut rng = ChaCha8Rng::seed_from_u64(2);
+    let obs: Vec<f32> = (0..steps * envs * obs_dim)
+        .map(|_| rng.random_range(-1.0..1.0))
+        .collect();
+    let labels: Vec<f32> = (0..steps * envs * 4)
+        .map(|_| rng.random_range(-1.0..1.0))
+        .collect();
+    let grad_of = |actor: &RecurrentActor, sel: &[usize]| -> GradientsParams {
+        let b = sel.len();
+        let (mut o, mut a) = (Vec::new(), Vec::new());
+        for t in 0..steps {
+            for &e in sel {
+                let i = t * envs + e;
+                o.extend_from_slice(&obs[i * obs_dim..(i + 1) * obs_dim]);
+                a.extend_from_slice(&labels[i * 4..(i + 1) * 4]);
+            }
+        }
+        let o = Tensor::<3>::from_data(TensorData::new(o, [steps, b, obs_dim]), &device);
+        let keep = Tensor::<2>::ones([steps, b], &device);
+        let a = Tensor::<2>::from_data(TensorData::new(a, [steps * b, 4]), &device);
+        let (mean, _) = actor
+            .net
+            .sequence(o, keep, actor.net.zero_state(b, &device));
+        GradientsParams::from_grads((mean - a).square().mean().backward(), actor)
+    };
+    let whole = flatten_gradients(&actor, &grad_of(&actor, &[0, 1, 2, 3, 4]));
+    let twin =
+        RecurrentActor::from_payload(&arch, &actor.net.payload(), &actor.std(), &device).unwrap();
+    let (left, right) = std::thread::scope(|s| {
+        let job = s.spawn(|| grad_of(&twin, &[0, 1]));
+        let r = grad_of(&actor, &[2, 3, 4]);
+        (job.join().unwrap(), r)
+    });
+    let left = transfer_gradients(&twin, left, &actor);
+    let merged = flatten_gradients(&actor, &weighted_sum(&actor, left, 0.4, right, 0.6));
+    assert_eq!(whole.len(), merged.len());
+    let scale = whole.iter().fold(0.0f32, |m, g| m.max(g.abs()));
+    let worst = whole
+        .iter()
+        .zip(&merged)
+        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(worst <= 1e-5 * scale, "max |Δ| {worst:e} of {scale:e}");
+}
