@@ -434,7 +434,10 @@ pub fn imitate_recurrent(
                     let ((gl, vl), (gr, vr)) = std::thread::scope(|sc| {
                         let job = sc.spawn(|| pass(&twin, left));
                         let r = pass(&actor, right);
-                        (job.join().unwrap_or_else(|e| std::panic::resume_unwind(e)), r)
+                        (
+                            job.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
+                            r,
+                        )
                     });
                     let gl = crate::ppo::transfer_gradients(&twin, gl, &actor);
                     let wl = left.len() as f32 / group.len() as f32;
