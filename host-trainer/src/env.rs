@@ -510,18 +510,23 @@ impl TrainEnv {
     /// imitation warm start. The teacher flies to each env's current target gate.
     pub fn teacher_actions(&self, teacher: &BaselineController<'static>, out: &mut [f32]) {
         let map = self.map;
+        self.per_env(out, |slot| {
+            let d = &slot.drones[0];
+            let mut c = teacher.clone();
+            c.reset(d.progress.target);
+            let (cmd, _) = c.step(&d.body.state);
+            cmd.rpm.map(|rpm| map.action_for_rpm(rpm).clamp(-1.0, 1.0))
+        });
+    }
+
+    /// `label(slot)` of every env into `out` (`num_envs × 4`), in parallel.
+    fn per_env(&self, out: &mut [f32], label: impl Fn(&Slot) -> [f32; ACTION_DIM] + Sync) {
         self.slots
             .par_chunks(CHUNK)
             .zip(out.par_chunks_mut(CHUNK * ACTION_DIM))
             .for_each(|(slots, out)| {
                 for (slot, a) in slots.iter().zip(out.chunks_exact_mut(ACTION_DIM)) {
-                    let d = &slot.drones[0];
-                    let mut c = teacher.clone();
-                    c.reset(d.progress.target);
-                    let (cmd, _) = c.step(&d.body.state);
-                    for (a, rpm) in a.iter_mut().zip(cmd.rpm) {
-                        *a = map.action_for_rpm(rpm).clamp(-1.0, 1.0);
-                    }
+                    a.copy_from_slice(&label(slot));
                 }
             });
     }
@@ -538,21 +543,15 @@ impl TrainEnv {
         out: &mut [f32],
     ) {
         let world = &self.world;
-        self.slots
-            .par_chunks(CHUNK)
-            .zip(out.par_chunks_mut(CHUNK * ACTION_DIM))
-            .for_each(|(slots, out)| {
-                for (slot, a) in slots.iter().zip(out.chunks_exact_mut(ACTION_DIM)) {
-                    let d = &slot.drones[0];
-                    let gate = world.track.gate(d.progress.target);
-                    let mut state = firmware_core::policy::PolicyState::Stateless;
-                    let mean = spec
-                        .observe(&d.body.state, &gate, &slot.previous_action, None)
-                        .ok()
-                        .and_then(|o| policy.act(&o, &mut state));
-                    a.copy_from_slice(&mean.unwrap_or([0.0; ACTION_DIM]));
-                }
-            });
+        self.per_env(out, |slot| {
+            let d = &slot.drones[0];
+            let gate = world.track.gate(d.progress.target);
+            let mut state = firmware_core::policy::PolicyState::Stateless;
+            spec.observe(&d.body.state, &gate, &slot.previous_action, None)
+                .ok()
+                .and_then(|o| policy.act(&o, &mut state))
+                .unwrap_or([0.0; ACTION_DIM])
+        });
     }
 
     /// Starts a new episode in every env now (a fresh spawn, the opponent's controller
