@@ -175,7 +175,7 @@ impl std::error::Error for OpponentError {}
 /// `bytes` for the rest of the process, one copy per distinct blob: the opponent's
 /// [`Controller`] views its blob's weights in place (as in flash), so every env's controller
 /// borrows one copy that must outlive the environments, which are rebuilt during a run.
-fn interned(bytes: &AlignedBytes) -> &'static AlignedBytes {
+pub(crate) fn interned(bytes: &AlignedBytes) -> &'static AlignedBytes {
     static BLOBS: std::sync::Mutex<Vec<&'static AlignedBytes>> = std::sync::Mutex::new(Vec::new());
     let mut blobs = BLOBS
         .lock()
@@ -319,11 +319,14 @@ impl TrainEnv {
         let race = match &config.race {
             None => None,
             Some(r) => {
-                let bytes = interned(&r.opponent).as_bytes();
-                let opponent = Controller::from_bytes(bytes, Track::figure_eight())
+                let blob = firmware_core::blob::Blob::parse(interned(&r.opponent).as_bytes())
                     .map_err(|e| OpponentError(e.to_string()))?;
-                let blob = firmware_core::blob::Blob::parse(bytes)
-                    .map_err(|e| OpponentError(e.to_string()))?;
+                let opponent = Controller::new(
+                    &blob,
+                    Track::figure_eight(),
+                    blob.header().control_period_ns,
+                )
+                .map_err(|e| OpponentError(e.to_string()))?;
                 if blob.header().observation.layout.needs_opponent() {
                     return Err(OpponentError(
                         "the opponent's policy observes an opponent itself; stage 2 races a time-trial (17-value) policy"

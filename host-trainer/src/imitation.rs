@@ -206,7 +206,8 @@ enum Teacher {
     Baseline(Box<BaselineController<'static>>),
     /// A time-trial blob's mean, observing through its own spec.
     Blob {
-        bytes: firmware_core::blob::AlignedBytes,
+        policy: Box<Policy<'static>>,
+        spec: firmware_core::observation::ObservationSpec,
     },
 }
 
@@ -224,7 +225,8 @@ impl Teacher {
         let raw = std::fs::read(path).map_err(|e| {
             TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
         })?;
-        let bytes = firmware_core::blob::AlignedBytes::new(&raw);
+        // Parsed once; the policy views the weights in place for the rest of the process.
+        let bytes = crate::env::interned(&firmware_core::blob::AlignedBytes::new(&raw));
         let blob = firmware_core::blob::Blob::parse(bytes.as_bytes()).map_err(|e| {
             TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
         })?;
@@ -236,20 +238,17 @@ impl Teacher {
                 "warm_start.teacher_blob '{path}': the teacher must be a feed-forward time-trial policy"
             )));
         }
-        Ok(Self::Blob { bytes })
+        Ok(Self::Blob {
+            policy: Box::new(policy),
+            spec: blob.header().observation,
+        })
     }
 
     /// The teacher's actions for every env of `env` now.
     fn label(&self, env: &TrainEnv, out: &mut [f32]) {
         match self {
             Self::Baseline(b) => env.teacher_actions(b, out),
-            Self::Blob { bytes } => {
-                if let Ok(blob) = firmware_core::blob::Blob::parse(bytes.as_bytes()) {
-                    if let Ok(policy) = blob.policy() {
-                        env.policy_actions(&policy, &blob.header().observation, out);
-                    }
-                }
-            }
+            Self::Blob { policy, spec } => env.policy_actions(policy, spec, out),
         }
     }
 }

@@ -188,13 +188,13 @@ pub trait PpoNet: Module + Sync + 'static {
     /// The outputs for `mb`'s samples, one row each in `mb.samples` order (autodiff when
     /// the network is on an autodiff device).
     fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2>;
-    /// The outputs for every sample of `b` and for the observations after the window
-    /// (`last_obs`), and the state to start the next window from (empty when
-    /// feed-forward).
+    /// The outputs for every sample of `b`; with `last_obs` (the observations after the
+    /// window) also the outputs for those and the state to start the next window from
+    /// (empty when feed-forward), else both empty.
     fn rollout_outputs(
         &self,
         b: &Batch,
-        last_obs: &[f32],
+        last_obs: Option<&[f32]>,
         device: &Device,
     ) -> (Vec<f32>, Vec<f32>, Vec<f32>);
 }
@@ -239,11 +239,13 @@ impl PpoNet for Actor {
     fn rollout_outputs(
         &self,
         b: &Batch,
-        last: &[f32],
+        last: Option<&[f32]>,
         device: &Device,
     ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let all = values(self.mean(tensor2(b.obs.clone(), b.obs_dim, device)));
-        let last = values(self.mean(tensor2(last.to_vec(), b.obs_dim, device)));
+        let last = last.map_or_else(Vec::new, |l| {
+            values(self.mean(tensor2(l.to_vec(), b.obs_dim, device)))
+        });
         (all, last, Vec::new())
     }
 }
@@ -292,11 +294,13 @@ impl PpoNet for Critic {
     fn rollout_outputs(
         &self,
         b: &Batch,
-        last: &[f32],
+        last: Option<&[f32]>,
         device: &Device,
     ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let all = values(self.value(tensor2(b.obs.clone(), b.obs_dim, device)));
-        let last = values(self.value(tensor2(last.to_vec(), b.obs_dim, device)));
+        let last = last.map_or_else(Vec::new, |l| {
+            values(self.value(tensor2(l.to_vec(), b.obs_dim, device)))
+        });
         (all, last, Vec::new())
     }
 }
@@ -316,14 +320,8 @@ fn window_outputs(
     let (layers, hidden) = (net.lstm.len(), net.hidden());
     let width = LstmState::width(layers, hidden);
     let envs = mb.envs.len();
-    let obs = Tensor::<2>::from_data(
-        TensorData::new(
-            gather(&b.obs, b.obs_dim, &mb.samples),
-            [mb.samples.len(), b.obs_dim],
-        ),
-        device,
-    )
-    .reshape([seq.steps, envs, b.obs_dim]);
+    let obs = tensor2(gather(&b.obs, b.obs_dim, &mb.samples), b.obs_dim, device)
+        .reshape([seq.steps, envs, b.obs_dim]);
     let keep: Vec<f32> = mb.samples.iter().map(|&i| seq.keep[i]).collect();
     let keep = Tensor::<2>::from_data(TensorData::new(keep, [seq.steps, envs]), device);
     let state = if h0.is_empty() {
@@ -334,13 +332,13 @@ fn window_outputs(
     net.sequence(obs, keep, state).0
 }
 
-/// The whole rollout through `net` (no autodiff): every sample's output, the outputs for
-/// the observations after the window, and the state after the window (zeroed where the
-/// episode ended at its last step).
+/// The whole rollout through `net` (no autodiff): every sample's output and, with
+/// `last_obs`, the outputs for the observations after the window and the state after the
+/// window (zeroed where the episode ended at its last step).
 fn window_rollout_outputs(
     net: &crate::recurrent::LstmNet,
     b: &Batch,
-    last_obs: &[f32],
+    last_obs: Option<&[f32]>,
     h0: &[f32],
     device: &Device,
 ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
@@ -356,6 +354,9 @@ fn window_rollout_outputs(
     let obs = tensor2(b.obs.clone(), b.obs_dim, device).reshape([seq.steps, n, b.obs_dim]);
     let keep = Tensor::<2>::from_data(TensorData::new(seq.keep.clone(), [seq.steps, n]), device);
     let (all, after) = net.sequence(obs, keep, state);
+    let Some(last_obs) = last_obs else {
+        return (values(all), Vec::new(), Vec::new());
+    };
     let last_keep = Tensor::<2>::from_data(TensorData::new(seq.last_keep.clone(), [1, n]), device);
     let last = tensor2(last_obs.to_vec(), b.obs_dim, device).reshape([1, n, b.obs_dim]);
     let kept = LstmState {
@@ -381,7 +382,7 @@ impl PpoNet for RecurrentActor {
     fn rollout_outputs(
         &self,
         b: &Batch,
-        last: &[f32],
+        last: Option<&[f32]>,
         device: &Device,
     ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.actor_h0);
@@ -431,7 +432,7 @@ impl PpoNet for RecurrentCritic {
     fn rollout_outputs(
         &self,
         b: &Batch,
-        last: &[f32],
+        last: Option<&[f32]>,
         device: &Device,
     ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.critic_h0);
@@ -831,6 +832,9 @@ fn actor_pass<A: PolicyNet>(
 pub type RecurrentLearner = Learner<RecurrentActor, RecurrentCritic>;
 
 impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
+    /// Either network carries a state: minibatches are whole env windows.
+    const RECURRENT: bool = A::RECURRENT || C::RECURRENT;
+
     /// A learner with fresh optimisers.
     pub fn new(actor: A, critic: C, learning_rate: f64, device: Device) -> Self {
         Self {
@@ -863,13 +867,13 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             old_mean: Vec::new(),
             old_std: [1.0; ACTION_DIM],
             old_values: Vec::new(),
-            returns: vec![0.0; r.rewards.len()],
+            returns: Vec::new(),
             advantages: Vec::new(),
-            sequence: (A::RECURRENT || C::RECURRENT).then(|| Sequences::of(r)),
+            sequence: Self::RECURRENT.then(|| Sequences::of(r)),
         };
-        let (old_mean, _, _) = actor.rollout_outputs(&batch, &r.last_obs, &device);
+        let (old_mean, _, _) = actor.rollout_outputs(&batch, None, &device);
         let (old_values, last_values, critic_next) =
-            critic.rollout_outputs(&batch, &r.last_obs, &device);
+            critic.rollout_outputs(&batch, Some(&r.last_obs), &device);
         let std = actor.std();
         let old_std: [f32; ACTION_DIM] =
             core::array::from_fn(|k| std.get(k).copied().unwrap_or(1.0));
@@ -952,7 +956,7 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
     /// for feed-forward networks, whole env windows for recurrent ones.
     pub fn update(&mut self, batch: &Batch, p: &PpoConfig, rng: &mut ChaCha8Rng) -> UpdateStats {
         let n = match &batch.sequence {
-            Some(s) if A::RECURRENT || C::RECURRENT => s.num_envs,
+            Some(s) if Self::RECURRENT => s.num_envs,
             _ => batch.len(),
         };
         let size = n / p.minibatches.max(1);
@@ -993,7 +997,7 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
     /// minibatch's sample indices into `b` for feed-forward networks, its envs (whole
     /// windows) for recurrent ones.
     pub fn train_minibatch(&mut self, b: &Batch, idx: &[usize], p: &PpoConfig) -> UpdateStats {
-        let mb = if A::RECURRENT || C::RECURRENT {
+        let mb = if Self::RECURRENT {
             Minibatch::of_envs(b, idx)
         } else {
             Minibatch {

@@ -142,17 +142,6 @@ impl LstmState {
         }
         values(Tensor::cat(parts, 1))
     }
-
-    /// Cut from the autodiff graph (truncated backpropagation through time).
-    pub fn detach(self) -> Self {
-        Self {
-            layers: self
-                .layers
-                .into_iter()
-                .map(|(h, c)| (h.detach(), c.detach()))
-                .collect(),
-        }
-    }
 }
 
 /// Appends a firmware-core recurrent state in [`LstmState`]'s flat layout (per layer `h`

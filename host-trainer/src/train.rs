@@ -264,15 +264,18 @@ pub fn architecture(config: &TrainConfig) -> Result<(TableRow, Architecture), Tr
             )));
         }
     };
-    let arch = Architecture::table1(row);
-    Ok((row, arch))
+    Ok((row, Architecture::table1(row)))
 }
 
 /// The environment of a config, seeded with `seed`: a time trial, or a race against the
 /// config's opponent (read and validated here).
 pub fn make_env(config: &TrainConfig, seed: u64) -> Result<TrainEnv, TrainError> {
-    TrainEnv::with_race(env_config(config, seed)?)
-        .map_err(|e| TrainError::Unsupported(e.to_string()))
+    build_env(env_config(config, seed)?)
+}
+
+/// The environment of `config` (a time trial, or a race against its opponent).
+fn build_env(config: EnvConfig) -> Result<TrainEnv, TrainError> {
+    TrainEnv::with_race(config).map_err(|e| TrainError::Unsupported(e.to_string()))
 }
 
 /// The training environment of a config, seeded with `seed`.
@@ -562,20 +565,24 @@ pub fn checkpoint_blob(
     out: &Path,
     device: &Device,
 ) -> Result<(u32, Vec<u8>), TrainError> {
+    fn latest<A: PolicyNet, C: ValueNet>(
+        paths: &Paths,
+        config: &TrainConfig,
+        arch: &Architecture,
+        device: &Device,
+    ) -> Result<(u32, Vec<u8>), TrainError> {
+        let s = load_checkpoint::<A, C>(paths, config, arch, device)?;
+        Ok((
+            s.iteration,
+            actor_blob(&s.learner.actor, config, s.iteration)?,
+        ))
+    }
     let (_, arch) = architecture(config)?;
     let paths = Paths::new(out);
     if arch.is_recurrent() {
-        let s = load_checkpoint::<RecurrentActor, RecurrentCritic>(&paths, config, &arch, device)?;
-        Ok((
-            s.iteration,
-            actor_blob(&s.learner.actor, config, s.iteration)?,
-        ))
+        latest::<RecurrentActor, RecurrentCritic>(&paths, config, &arch, device)
     } else {
-        let s = load_checkpoint::<Actor, Critic>(&paths, config, &arch, device)?;
-        Ok((
-            s.iteration,
-            actor_blob(&s.learner.actor, config, s.iteration)?,
-        ))
+        latest::<Actor, Critic>(&paths, config, &arch, device)
     }
 }
 
@@ -850,10 +857,7 @@ pub fn collect_rollout(
                     .zip(z.chunks_exact(ACTION_DIM))
                     .zip(memory)
                 {
-                    let mean = match Observation::from_values(o) {
-                        Some(o) => policy.act(&o, memory),
-                        None => None,
-                    };
+                    let mean = Observation::from_values(o).and_then(|o| policy.act(&o, memory));
                     let Some(mean) = mean else {
                         continue;
                     };
@@ -896,7 +900,7 @@ pub fn measured_return(
         .map_err(|e| TrainError::Export(format!("actor does not load as a blob: {e}")))?;
     let mut c = env_config(config, seed)?;
     c.num_envs = guard.envs;
-    let mut env = TrainEnv::with_race(c).map_err(|e| TrainError::Unsupported(e.to_string()))?;
+    let mut env = build_env(c)?;
     let mut rng = generator(seed, 7);
     let mut rollout = Rollout::new(guard.envs, env.obs_dim());
     if guard.warmup_steps > 0 {

@@ -58,7 +58,8 @@ pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
     let mut buf = vec![0u8; 65_536];
     let mut out = Vec::with_capacity(512);
     socket.set_read_timeout(Some(Duration::from_millis(100)))?;
-    loop {
+    // Runs until the simulator says shut down (true) or goes silent (false).
+    summary.shut_down = 'serve: loop {
         // A heartbeat once a second to whoever drives us, as an autopilot does.
         if let Some(peer) = sim {
             if last_heartbeat.is_none_or(|t| t.elapsed() >= Duration::from_secs(1)) {
@@ -77,8 +78,7 @@ pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
                 ) =>
             {
                 if last_valid.elapsed() > config.idle_timeout {
-                    summary.link.frames_sent = codec.frames_encoded();
-                    return Ok(summary);
+                    break 'serve false;
                 }
                 continue;
             }
@@ -116,9 +116,7 @@ pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
                             let reply = ack(c.command, MavResult::MAV_RESULT_ACCEPTED, 0, to);
                             codec.encode(own, &reply, &mut out);
                             socket.send_to(&out, from)?;
-                            summary.shut_down = true;
-                            summary.link.frames_sent = codec.frames_encoded();
-                            return Ok(summary);
+                            break 'serve true;
                         }
                         other => {
                             let reply = ack(other, MavResult::MAV_RESULT_UNSUPPORTED, 0, to);
@@ -151,5 +149,7 @@ pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
         if !out.is_empty() {
             socket.send_to(&out, from)?;
         }
-    }
+    };
+    summary.link.frames_sent = codec.frames_encoded();
+    Ok(summary)
 }
