@@ -1,6 +1,7 @@
 //! One `Controller::step` on the host for Table 1 rows A (MLP 2 × 128) and G (a 2-layer LSTM
 //! and a 4-layer MLP): gate bookkeeping, observation, inference, action map. Seeded synthetic
-//! weights (the cost does not depend on their values).
+//! weights (the cost does not depend on their values); G also in int8 (`controller_step_G_i8`,
+//! the portable kernel: the host has no SMLAD).
 //!
 //! `cargo bench -p firmware-core --bench controller_step`
 
@@ -31,12 +32,26 @@ fn states() -> Vec<VehicleState> {
 fn bench(c: &mut Criterion) {
     let own = states();
     let opponent = VehicleState::at_rest(Vec3::new(-1.0, 0.5, 1.0), Quat::IDENTITY);
-    for row in [TableRow::A, TableRow::G] {
-        let bytes = AlignedBytes::new(&synthetic::blob(row, 1).expect("encode"));
+    for (row, int8) in [
+        (TableRow::A, false),
+        (TableRow::G, false),
+        (TableRow::G, true),
+    ] {
+        let blob = if int8 {
+            synthetic::blob_i8(row, 1)
+        } else {
+            synthetic::blob(row, 1)
+        };
+        let bytes = AlignedBytes::new(&blob.expect("encode"));
         let mut ctrl =
             Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
         let mut i = 0;
-        c.bench_function(&format!("controller_step_{}", row.letter()), |b| {
+        let name = format!(
+            "controller_step_{}{}",
+            row.letter(),
+            if int8 { "_i8" } else { "" }
+        );
+        c.bench_function(&name, |b| {
             b.iter(|| {
                 i = (i + 1) % own.len();
                 black_box(ctrl.step(black_box(&own[i]), Some(&opponent)))

@@ -27,7 +27,7 @@
 //!    rate scale (rad/s), opponent position (m), velocity (m/s) and rate (rad/s) scales, clip.
 //! 3. `action_map`: `hover_rpm` f32, `gain` f32 (rpm = hover · (1 + gain · a)).
 //! 4. `control_period_ns` u32 (20,000,000 for 50 Hz).
-//! 5. `dtype` enum {0: F32}.
+//! 5. `dtype` enum {0: F32, 1: I8}.
 //! 6. `provenance`: `name` String (≤ 32 bytes UTF-8), `seed` u64, `iterations` u32,
 //!    `preset` String (≤ 16), `config_hash` u64.
 //! 7. `payload_len` u32 (bytes).
@@ -39,6 +39,17 @@
 //! last, `weight [out][in]`, `bias [out]`. Matrices are row-major (PyTorch layout). Every
 //! value must be finite.
 //!
+//! ## Payload (dtype I8)
+//! The same tensors in the same order; biases stay f32, and each matrix `[rows][cols]` is
+//! stored as symmetric per-row int8:
+//! * `scale [rows]` f32 (finite, ≥ 0): row `r`'s weights are `scale[r] · q[r][c]`;
+//! * `q [rows][stride]` i8 (two's complement), `stride = cols` rounded up to a multiple
+//!   of 4; the padding bytes at the end of each row are zero.
+//!
+//! Every tensor so starts on a 4-byte boundary. The quantiser ([`encode_i8`]) sets
+//! `scale[r] = max_c |w[r][c]| / 127` and `q = round(w / scale)` in -127..=127. Row G is
+//! 320,288 payload bytes in int8 against 1,215,760 in f32 (3.8× smaller).
+//!
 //! ## Errors
 //! Decoding checks, in order: alignment, length of the fixed prefix, magic, version, header,
 //! total length, CRC, then the contents (dtype, observation spec, architecture, action map,
@@ -46,6 +57,7 @@
 //! panics and nothing is allocated.
 
 use crate::crc32::crc32;
+use crate::nn::WeightReader;
 use crate::observation::ObservationSpec;
 use crate::policy::{Architecture, Policy};
 use crate::vehicle::ActionMap;
@@ -65,13 +77,25 @@ pub const CRC_LEN: usize = 4;
 pub enum WeightDtype {
     /// IEEE-754 binary32, little-endian.
     F32,
+    /// Matrices in symmetric per-row int8 with f32 scales; biases in f32 (module docs).
+    I8,
 }
 
 impl WeightDtype {
-    /// Bytes per weight.
-    pub const fn size_bytes(self) -> usize {
+    /// The name used on command lines and in reports (`f32`, `i8`).
+    pub const fn name(self) -> &'static str {
         match self {
-            Self::F32 => 4,
+            Self::F32 => "f32",
+            Self::I8 => "i8",
+        }
+    }
+
+    /// The dtype called `name` on a command line (`f32`, `i8`, or `int8`).
+    pub fn from_name(name: &str) -> Option<Self> {
+        match name {
+            "f32" => Some(Self::F32),
+            "i8" | "int8" => Some(Self::I8),
+            _ => None,
         }
     }
 }
@@ -155,7 +179,7 @@ pub enum BlobError {
     UnsupportedVersion(u16),
     /// The header does not decode, or does not fill exactly its declared length.
     MalformedHeader,
-    /// A padding byte before the payload is not zero.
+    /// A padding byte (before the payload, or at the end of an int8 row) is not zero.
     NonZeroPadding,
     /// The stored CRC does not match the bytes.
     CrcMismatch {
@@ -174,6 +198,18 @@ pub enum BlobError {
     InvalidActionMap,
     /// The control period is zero.
     InvalidControlPeriod,
+    /// The int8 payload does not have exactly the architecture's size.
+    PayloadLengthMismatch {
+        /// Bytes the architecture needs in int8.
+        expected_bytes: usize,
+        /// Bytes in the payload.
+        actual_bytes: usize,
+    },
+    /// An int8 row scale is negative, NaN or infinite.
+    InvalidScale {
+        /// Index of the scale's 4-byte word in the payload.
+        word: usize,
+    },
     /// The payload does not hold exactly the architecture's parameters.
     PayloadSizeMismatch {
         /// Parameters the architecture needs.
@@ -234,6 +270,17 @@ impl core::fmt::Display for BlobError {
                 "blob payload holds {actual_floats} weights, the architecture needs {expected_floats}"
             ),
             Self::NonFiniteWeight { index } => write!(f, "blob weight {index} is not finite"),
+            Self::PayloadLengthMismatch {
+                expected_bytes,
+                actual_bytes,
+            } => write!(
+                f,
+                "int8 blob payload is {actual_bytes} bytes, the architecture needs {expected_bytes}"
+            ),
+            Self::InvalidScale { word } => write!(
+                f,
+                "int8 blob scale at payload word {word} is negative or not finite"
+            ),
         }
     }
 }
@@ -247,7 +294,8 @@ compile_error!(
 #[derive(Clone, Debug)]
 pub struct Blob<'w> {
     header: BlobHeader,
-    payload: &'w [f32],
+    /// The payload as little-endian words (f32 values, or int8 quads and f32 scales/biases).
+    payload: &'w [u32],
     len: usize,
 }
 
@@ -266,16 +314,61 @@ fn read_u32(bytes: &[u8], at: usize) -> Option<u32> {
     ]))
 }
 
-/// Views 4-byte-aligned little-endian bytes as `f32` without copying.
-fn as_f32s(bytes: &[u8]) -> Result<&[f32], BlobError> {
+/// Views 4-byte-aligned little-endian bytes as 32-bit words without copying.
+fn as_words(bytes: &[u8]) -> Result<&[u32], BlobError> {
     let offset_mod_4 = bytes.as_ptr() as usize % 4;
     if offset_mod_4 != 0 {
         return Err(BlobError::Misaligned { offset_mod_4 });
     }
-    // SAFETY: the pointer is 4-byte aligned (checked above), `len / 4` f32 lie within the
-    // borrowed bytes, every bit pattern is a valid f32, and the target is little-endian
+    // SAFETY: the pointer is 4-byte aligned (checked above), `len / 4` words lie within the
+    // borrowed bytes, every bit pattern is a valid u32, and the target is little-endian
     // (compile_error above), so the values are the stored ones. The lifetime is the input's.
-    Ok(unsafe { core::slice::from_raw_parts(bytes.as_ptr().cast::<f32>(), bytes.len() / 4) })
+    Ok(unsafe { core::slice::from_raw_parts(bytes.as_ptr().cast::<u32>(), bytes.len() / 4) })
+}
+
+/// Checks an int8 payload's contents tensor by tensor (its size is already checked): finite
+/// biases, finite non-negative scales, zero row padding.
+fn validate_i8(arch: &Architecture, words: &[u32]) -> Result<(), BlobError> {
+    let mut at = 0usize;
+    let mut take = |n: usize| -> Result<(usize, &[u32]), BlobError> {
+        let start = at;
+        let slice = words
+            .get(start..start + n)
+            .ok_or(BlobError::PayloadLengthMismatch {
+                expected_bytes: (start + n) * 4,
+                actual_bytes: words.len() * 4,
+            })?;
+        at += n;
+        Ok((start, slice))
+    };
+    for t in arch.tensors() {
+        if t.cols == 0 {
+            let (start, bias) = take(t.rows)?;
+            if let Some(i) = bias.iter().position(|w| !f32::from_bits(*w).is_finite()) {
+                return Err(BlobError::NonFiniteWeight { index: start + i });
+            }
+            continue;
+        }
+        let (start, scales) = take(t.rows)?;
+        if let Some(i) = scales.iter().position(|w| {
+            let s = f32::from_bits(*w);
+            !s.is_finite() || s.is_sign_negative()
+        }) {
+            return Err(BlobError::InvalidScale { word: start + i });
+        }
+        let row_words = crate::nn::i8_row_bytes(t.cols) / 4;
+        let (_, q) = take(t.rows * row_words)?;
+        let pad = row_words * 4 - t.cols;
+        if pad > 0 {
+            let last_word_of_rows = q.iter().skip(row_words - 1).step_by(row_words);
+            // The last `pad` bytes of each row's last word (little-endian: the high bytes).
+            let mask = u32::MAX << (8 * (4 - pad));
+            if last_word_of_rows.into_iter().any(|w| w & mask != 0) {
+                return Err(BlobError::NonZeroPadding);
+            }
+        }
+    }
+    Ok(())
 }
 
 impl<'w> Blob<'w> {
@@ -334,9 +427,6 @@ impl<'w> Blob<'w> {
             return Err(BlobError::NonZeroPadding);
         }
         // Contents.
-        if header.dtype != WeightDtype::F32 {
-            return Err(BlobError::UnsupportedDtype);
-        }
         if !header.observation.is_supported() {
             return Err(BlobError::ObservationSpecMismatch);
         }
@@ -349,21 +439,41 @@ impl<'w> Blob<'w> {
         if header.control_period_ns == 0 {
             return Err(BlobError::InvalidControlPeriod);
         }
-        let expected_floats = header.architecture.param_count();
-        if !payload_len.is_multiple_of(4) || payload_len / 4 != expected_floats {
-            return Err(BlobError::PayloadSizeMismatch {
-                expected_floats,
-                actual_floats: payload_len / 4,
-            });
-        }
-        let payload = as_f32s(
+        let arch = &header.architecture;
+        let expected_bytes = arch.payload_bytes(header.dtype);
+        let payload_words = |len: usize| {
             bytes
-                .get(payload_offset..payload_end)
-                .ok_or(truncated(total))?,
-        )?;
-        if let Some(index) = payload.iter().position(|w| !w.is_finite()) {
-            return Err(BlobError::NonFiniteWeight { index });
-        }
+                .get(payload_offset..payload_offset + len)
+                .ok_or(truncated(total))
+                .and_then(as_words)
+        };
+        let payload = match header.dtype {
+            WeightDtype::F32 => {
+                let expected_floats = arch.param_count();
+                if payload_len != expected_bytes {
+                    return Err(BlobError::PayloadSizeMismatch {
+                        expected_floats,
+                        actual_floats: payload_len / 4,
+                    });
+                }
+                let payload = payload_words(payload_len)?;
+                if let Some(index) = payload.iter().position(|w| !f32::from_bits(*w).is_finite()) {
+                    return Err(BlobError::NonFiniteWeight { index });
+                }
+                payload
+            }
+            WeightDtype::I8 => {
+                if payload_len != expected_bytes {
+                    return Err(BlobError::PayloadLengthMismatch {
+                        expected_bytes,
+                        actual_bytes: payload_len,
+                    });
+                }
+                let payload = payload_words(payload_len)?;
+                validate_i8(arch, payload)?;
+                payload
+            }
+        };
         let blob = Self {
             header,
             payload,
@@ -379,8 +489,17 @@ impl<'w> Blob<'w> {
         &self.header
     }
 
-    /// The weights, in payload order.
-    pub fn weights(&self) -> &'w [f32] {
+    /// The f32 weights in payload order; `None` for an int8 blob (see
+    /// [`Blob::dequantized`] on the host).
+    pub fn weights(&self) -> Option<&'w [f32]> {
+        match self.header.dtype {
+            WeightDtype::F32 => Some(crate::nn::words_f32(self.payload)),
+            WeightDtype::I8 => None,
+        }
+    }
+
+    /// The payload as little-endian 32-bit words, whatever the dtype.
+    pub fn payload_words(&self) -> &'w [u32] {
         self.payload
     }
 
@@ -396,7 +515,11 @@ impl<'w> Blob<'w> {
 
     /// The policy network viewing this blob's weights.
     pub fn policy(&self) -> Result<Policy<'w>, BlobError> {
-        Policy::from_payload(&self.header.architecture, self.payload)
+        let reader = match self.header.dtype {
+            WeightDtype::F32 => WeightReader::new(crate::nn::words_f32(self.payload)),
+            WeightDtype::I8 => WeightReader::new_i8(self.payload),
+        };
+        Policy::from_reader(&self.header.architecture, reader)
     }
 }
 
@@ -447,9 +570,7 @@ mod encode_std {
     impl std::error::Error for EncodeError {}
     impl std::error::Error for BlobError {}
 
-    /// Encodes f32 `weights` (payload order) under `header` (its `payload_len` and `dtype`
-    /// are set here).
-    pub fn encode(header: &BlobHeader, weights: &[f32]) -> Result<Vec<u8>, EncodeError> {
+    fn check_weights(header: &BlobHeader, weights: &[f32]) -> Result<(), EncodeError> {
         let expected = header.architecture.param_count();
         if weights.len() != expected {
             return Err(EncodeError::WrongWeightCount {
@@ -460,24 +581,146 @@ mod encode_std {
         if let Some(index) = weights.iter().position(|w| !w.is_finite()) {
             return Err(EncodeError::NonFiniteWeight { index });
         }
+        Ok(())
+    }
+
+    /// Prefix, `header` (with `dtype` and `payload_len` set), padding, `payload` and CRC.
+    fn assemble(
+        header: &BlobHeader,
+        dtype: WeightDtype,
+        payload: &[u8],
+    ) -> Result<Vec<u8>, EncodeError> {
         let mut header = header.clone();
-        header.dtype = WeightDtype::F32;
+        header.dtype = dtype;
         header.payload_len =
-            u32::try_from(weights.len() * 4).map_err(|_| EncodeError::PayloadTooLarge)?;
+            u32::try_from(payload.len()).map_err(|_| EncodeError::PayloadTooLarge)?;
         let head = postcard::to_stdvec(&header).map_err(|_| EncodeError::Header)?;
         let head_len = u16::try_from(head.len()).map_err(|_| EncodeError::HeaderTooLong)?;
-        let mut out = Vec::with_capacity(PREFIX_LEN + head.len() + 3 + weights.len() * 4 + 4);
+        let mut out = Vec::with_capacity(PREFIX_LEN + head.len() + 3 + payload.len() + 4);
         out.extend_from_slice(&MAGIC);
         out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
         out.extend_from_slice(&head_len.to_le_bytes());
         out.extend_from_slice(&head);
         out.resize(out.len().next_multiple_of(4), 0);
-        for w in weights {
-            out.extend_from_slice(&w.to_le_bytes());
-        }
+        out.extend_from_slice(payload);
         let crc = crc32(&out);
         out.extend_from_slice(&crc.to_le_bytes());
         Ok(out)
+    }
+
+    /// Encodes f32 `weights` (payload order) under `header` (its `payload_len` and `dtype`
+    /// are set here).
+    pub fn encode(header: &BlobHeader, weights: &[f32]) -> Result<Vec<u8>, EncodeError> {
+        check_weights(header, weights)?;
+        let payload: Vec<u8> = weights.iter().flat_map(|w| w.to_le_bytes()).collect();
+        assemble(header, WeightDtype::F32, &payload)
+    }
+
+    /// Encodes f32 `weights` (payload order) under `header` as an int8 blob: every matrix
+    /// row quantised symmetrically, `scale = max |w| / 127`, `q = round(w / scale)` (half
+    /// away from zero), biases kept in f32 (module docs, "Payload (dtype I8)"). A row of
+    /// zeros gets scale 0.
+    pub fn encode_i8(header: &BlobHeader, weights: &[f32]) -> Result<Vec<u8>, EncodeError> {
+        check_weights(header, weights)?;
+        let arch = &header.architecture;
+        let mut payload = Vec::with_capacity(arch.payload_bytes(WeightDtype::I8));
+        let mut rest = weights;
+        for t in arch.tensors() {
+            let (tensor, tail) = rest.split_at(t.len());
+            rest = tail;
+            if t.cols == 0 {
+                payload.extend(tensor.iter().flat_map(|w| w.to_le_bytes()));
+                continue;
+            }
+            let scales: Vec<f32> = tensor
+                .chunks_exact(t.cols)
+                .map(|row| row.iter().fold(0.0f32, |m, w| m.max(w.abs())) / 127.0)
+                .collect();
+            payload.extend(scales.iter().flat_map(|s| s.to_le_bytes()));
+            for (row, &scale) in tensor.chunks_exact(t.cols).zip(&scales) {
+                let start = payload.len();
+                payload.extend(row.iter().map(|&w| quantize_weight(w, scale) as u8));
+                payload.resize(start + crate::nn::i8_row_bytes(t.cols), 0);
+            }
+        }
+        assemble(header, WeightDtype::I8, &payload)
+    }
+
+    /// One weight in int8 under its row's `scale`.
+    fn quantize_weight(w: f32, scale: f32) -> i8 {
+        if scale == 0.0 {
+            return 0;
+        }
+        (w / scale).round().clamp(-127.0, 127.0) as i8
+    }
+
+    impl Blob<'_> {
+        /// The weights in payload order as f32: a copy of an f32 blob's, or an int8 blob's
+        /// `scale · q` (the values its inference multiplies by, before the activations'
+        /// own int16 rounding).
+        pub fn dequantized(&self) -> Vec<f32> {
+            if let Some(w) = self.weights() {
+                return w.to_vec();
+            }
+            let arch = &self.header.architecture;
+            let mut out = Vec::with_capacity(arch.param_count());
+            let mut words = self.payload;
+            for t in arch.tensors() {
+                let (scales, tail) = words.split_at(if t.cols == 0 { 0 } else { t.rows });
+                words = tail;
+                if t.cols == 0 {
+                    let (bias, tail) = words.split_at(t.rows);
+                    words = tail;
+                    out.extend(bias.iter().map(|w| f32::from_bits(*w)));
+                    continue;
+                }
+                let row_words = crate::nn::i8_row_bytes(t.cols) / 4;
+                let (q, tail) = words.split_at(t.rows * row_words);
+                words = tail;
+                for (row, s) in q.chunks_exact(row_words).zip(scales) {
+                    let bytes = row.iter().flat_map(|w| w.to_le_bytes()).take(t.cols);
+                    out.extend(bytes.map(|b| f32::from(b as i8) * f32::from_bits(*s)));
+                }
+            }
+            out
+        }
+    }
+
+    /// Why a blob file could not be converted.
+    #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+    pub enum ConvertError {
+        /// The input is not a valid blob.
+        Parse(BlobError),
+        /// The output could not be encoded.
+        Encode(EncodeError),
+    }
+
+    impl core::fmt::Display for ConvertError {
+        fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+            match self {
+                Self::Parse(e) => write!(f, "not a valid blob: {e}"),
+                Self::Encode(e) => write!(f, "cannot encode the converted blob: {e}"),
+            }
+        }
+    }
+
+    impl std::error::Error for ConvertError {}
+
+    /// [`convert`] on the bytes of a blob file (any alignment: they are copied first).
+    pub fn convert_bytes(bytes: &[u8], dtype: WeightDtype) -> Result<Vec<u8>, ConvertError> {
+        let aligned = AlignedBytes::new(bytes);
+        let blob = Blob::parse(aligned.as_bytes()).map_err(ConvertError::Parse)?;
+        convert(&blob, dtype).map_err(ConvertError::Encode)
+    }
+
+    /// Re-encodes a parsed blob in `dtype` with its header otherwise unchanged (the f32 →
+    /// int8 converter; int8 → f32 writes the dequantised weights).
+    pub fn convert(blob: &Blob<'_>, dtype: WeightDtype) -> Result<Vec<u8>, EncodeError> {
+        let weights = blob.dequantized();
+        match dtype {
+            WeightDtype::F32 => encode(blob.header(), &weights),
+            WeightDtype::I8 => encode_i8(blob.header(), &weights),
+        }
     }
 
     /// Bytes held at a 4-byte-aligned address, as flash would hold a blob.
@@ -522,4 +765,6 @@ mod encode_std {
 }
 
 #[cfg(feature = "std")]
-pub use encode_std::{AlignedBytes, EncodeError, encode};
+pub use encode_std::{
+    AlignedBytes, ConvertError, EncodeError, convert, convert_bytes, encode, encode_i8,
+};

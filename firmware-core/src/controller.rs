@@ -8,7 +8,7 @@
 use crate::blob::{Blob, BlobError};
 use crate::math::Vec3;
 use crate::nn::ACTION_DIM;
-use crate::observation::{ObservationError, ObservationSpec};
+use crate::observation::{Observation, ObservationError, ObservationSpec};
 use crate::policy::{Policy, PolicyState};
 use crate::track::{GateEvent, GateProgress, Track};
 use crate::vehicle::{ActionMap, MotorCommand, VehicleState};
@@ -171,19 +171,10 @@ impl<'w> Controller<'w> {
     /// opponent's. Never panics: a bad input gives the fail-safe and a fault.
     pub fn step(&mut self, own: &VehicleState, opponent: Option<&VehicleState>) -> StepOutput {
         // 10 validate: the observation refuses non-finite inputs before any state changes.
-        let gate_event = match self.previous_position {
-            Some(from) if own.position_m.is_finite() => {
-                // 20 target gate
-                self.progress.advance(&self.track, from, own.position_m)
-            }
-            _ => GateEvent::None,
-        };
-        let gate = self.track.gate(self.progress.target);
-        // 30 observe
-        let obs = match self
-            .observation
-            .observe(own, &gate, &self.previous_action, opponent)
-        {
+        // 20 target gate, 30 observe
+        let (progress, gate_event, obs) = self.observe_next(own, opponent);
+        self.progress = progress;
+        let obs = match obs {
             Ok(obs) => obs,
             Err(e) => {
                 let fault = match e {
@@ -211,6 +202,43 @@ impl<'w> Controller<'w> {
             fault: None,
             gate_event,
         }
+    }
+
+    /// The gate bookkeeping and the observation the next [`Controller::step`] would make
+    /// from these states, without changing anything.
+    #[inline(always)]
+    fn observe_next(
+        &self,
+        own: &VehicleState,
+        opponent: Option<&VehicleState>,
+    ) -> (
+        GateProgress,
+        GateEvent,
+        Result<Observation, ObservationError>,
+    ) {
+        let mut progress = self.progress;
+        let gate_event = match self.previous_position {
+            Some(from) if own.position_m.is_finite() => {
+                progress.advance(&self.track, from, own.position_m)
+            }
+            _ => GateEvent::None,
+        };
+        let gate = self.track.gate(progress.target);
+        let obs = self
+            .observation
+            .observe(own, &gate, &self.previous_action, opponent);
+        (progress, gate_event, obs)
+    }
+
+    /// The observation the next [`Controller::step`] on these states will feed its policy
+    /// (for tools that replay a flight through another policy, e.g. the int8 accuracy
+    /// check); the controller is not changed.
+    pub fn peek_observation(
+        &self,
+        own: &VehicleState,
+        opponent: Option<&VehicleState>,
+    ) -> Result<Observation, ObservationError> {
+        self.observe_next(own, opponent).2
     }
 
     fn fail_safe(&mut self, fault: StepFault, gate_event: GateEvent) -> StepOutput {

@@ -140,6 +140,24 @@ impl Architecture {
         n + input * out + out
     }
 
+    /// Payload bytes of these weights stored as `dtype` (see [`crate::blob`]).
+    pub fn payload_bytes(&self, dtype: crate::blob::WeightDtype) -> usize {
+        match dtype {
+            crate::blob::WeightDtype::F32 => 4 * self.param_count(),
+            crate::blob::WeightDtype::I8 => self
+                .tensors()
+                .iter()
+                .map(|t| {
+                    if t.cols == 0 {
+                        4 * t.rows
+                    } else {
+                        4 * t.rows + t.rows * crate::nn::i8_row_bytes(t.cols)
+                    }
+                })
+                .sum(),
+        }
+    }
+
     /// The shape of every parameter tensor in payload order (host-trainer's `rslrl` module
     /// maps them to RSL-RL's names, `memory_a.rnn.weight_ih_l0`, `actor.0.weight`, …). A bias
     /// entry has 0 columns. The LSTM bias is the sum `bias_ih + bias_hh`.
@@ -302,10 +320,15 @@ impl PolicyState {
 }
 
 impl<'w> Policy<'w> {
-    /// Views `payload` as the weights of `arch`; the architecture must be one of Table 1's.
+    /// Views f32 `payload` as the weights of `arch`; the architecture must be one of
+    /// Table 1's.
     pub fn from_payload(arch: &Architecture, payload: &'w [f32]) -> Result<Self, BlobError> {
+        Self::from_reader(arch, WeightReader::new(payload))
+    }
+
+    /// Views the payload behind `r` (either dtype) as the weights of `arch`.
+    pub fn from_reader(arch: &Architecture, mut r: WeightReader<'w>) -> Result<Self, BlobError> {
         let matches = |row| *arch == Architecture::table1(row);
-        let mut r = WeightReader::new(payload);
         let policy = if matches(TableRow::A) {
             Self::A(MlpPolicy::load(&mut r)?)
         } else if matches(TableRow::B) {

@@ -117,3 +117,10 @@ pub fn blob(row: TableRow, seed: u64) -> Result<Vec<u8>, EncodeError> {
     let h = header(row, seed);
     encode(&h, &weights(&h.architecture, seed))
 }
+
+/// The int8 blob of [`blob`]`(row, seed)`: the same weights quantised by
+/// [`crate::blob::encode_i8`].
+pub fn blob_i8(row: TableRow, seed: u64) -> Result<Vec<u8>, EncodeError> {
+    let h = header(row, seed);
+    crate::blob::encode_i8(&h, &weights(&h.architecture, seed))
+}

@@ -43,10 +43,10 @@ fn a_valid_blob_round_trips_its_header_and_weights() {
     assert_eq!(blob.header().observation, h.observation);
     assert_eq!(blob.header().provenance, h.provenance);
     assert_eq!(blob.header().payload_len as usize, w.len() * 4);
-    assert_eq!(blob.weights(), &w[..]);
+    assert_eq!(blob.weights(), Some(&w[..]));
     assert_eq!(blob.len(), bytes.as_bytes().len());
     // Zero copy: the weights are the bytes of the buffer.
-    let payload_start = blob.weights().as_ptr() as usize;
+    let payload_start = blob.payload_words().as_ptr() as usize;
     let buf = bytes.as_bytes().as_ptr() as usize;
     assert!(payload_start > buf && payload_start < buf + bytes.as_bytes().len());
     assert_eq!((payload_start - buf) % 4, 0);

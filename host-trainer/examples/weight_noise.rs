@@ -33,7 +33,7 @@ fn main() {
     let aligned = AlignedBytes::new(&raw);
     let blob = Blob::parse(aligned.as_bytes()).expect("a valid blob");
     let header: BlobHeader = blob.header().clone();
-    let weights = blob.weights().to_vec();
+    let weights = blob.dequantized();
     println!("{path}: {} weights", weights.len());
     println!(
         "| ε per weight | seed | stage-1 spawn: success, crashes/s, best lap | along track (10): success, crashes/s |"

@@ -714,7 +714,7 @@ fn actor_from_blob<A: PolicyNet>(
         )));
     }
     let std = vec![config.ppo.init_std; usize::from(arch.action_dim)];
-    A::from_payload(arch, blob.weights(), &std, device)
+    A::from_payload(arch, &blob.dequantized(), &std, device)
         .ok_or_else(|| TrainError::Checkpoint(format!("{}: weights do not fit", path.display())))
 }
 

@@ -31,7 +31,7 @@ fn the_python_reader_agrees_with_firmware_core() {
         let aligned = AlignedBytes::new(&bytes);
         let blob = Blob::parse(aligned.as_bytes()).expect("parse");
         let h = blob.header();
-        let w = blob.weights();
+        let w = blob.weights().expect("an f32 blob");
         let widths = h
             .architecture
             .mlp_hidden

@@ -42,7 +42,7 @@ fn exported_weights_load_and_fly() {
 
     let blob = Blob::parse(bytes.as_bytes()).expect("parse");
     assert_eq!(blob.header().provenance, provenance);
-    assert_eq!(blob.weights(), &weights[..]);
+    assert_eq!(blob.weights(), Some(&weights[..]));
 
     let track = Track::figure_eight();
     let mut controller = Controller::from_bytes(bytes.as_bytes(), track).expect("controller");
