@@ -6,6 +6,10 @@
 //!     (`firmware_core::synthetic::blob(row, 0x0DD5_EED0 + letter)`);
 //!   - `golden_X.bin`: `tests/golden/row_X.golden` parsed to binary: `dim` u32, `steps` u32,
 //!     then per step `dim` f32 observations and 4 f64 expected means (all little-endian);
+//! * for rows A and G, `blob_X_i8.bin` (the same synthetic weights quantised to int8,
+//!   `synthetic::blob_i8`) and `int8_X.bin`: the golden observations with, in place of the
+//!   f64 reference, the host's own int8 outputs (f32 widened to f64), which the M4 must
+//!   reproduce bit for bit;
 //! * and `observation_expected.bin`: the 30 f32 of `fixtures::observation_case()` observed
 //!   with the host's firmware-core, for the M4 to reproduce.
 
@@ -13,7 +17,8 @@ use std::env;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use firmware_core::observation::{ObservationLayout, ObservationSpec};
+use firmware_core::blob::{AlignedBytes, Blob};
+use firmware_core::observation::{Observation, ObservationLayout, ObservationSpec};
 use firmware_core::policy::{Architecture, TableRow};
 use firmware_core::synthetic::{self, GOLDEN_ROWS, golden_seed};
 
@@ -72,6 +77,15 @@ fn main() {
         let path = golden_path(&golden_dir, row);
         let text = fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         let golden = parse_golden(row, &text).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        if matches!(row, TableRow::A | TableRow::G) {
+            let blob = synthetic::blob_i8(row, golden_seed(row))
+                .unwrap_or_else(|e| panic!("row {}: int8 encoding failed: {e}", row.letter()));
+            total += blob.len();
+            let expected = int8_expectation(&blob, &golden)
+                .unwrap_or_else(|e| panic!("row {}: int8 expectation: {e}", row.letter()));
+            write(&out.join(format!("blob_{}_i8.bin", row.letter())), &blob);
+            write(&out.join(format!("int8_{}.bin", row.letter())), &expected);
+        }
         write(&out.join(format!("golden_{}.bin", row.letter())), &golden);
     }
     assert!(
@@ -95,6 +109,36 @@ fn main() {
         .flat_map(|v| v.to_le_bytes())
         .collect();
     write(&out.join("observation_expected.bin"), &bytes);
+}
+
+/// The binary golden `golden` (layout above) with its means replaced by the host's int8
+/// inference on `blob` over the same observations.
+fn int8_expectation(blob: &[u8], golden: &[u8]) -> Result<Vec<u8>, String> {
+    let aligned = AlignedBytes::new(blob);
+    let blob = Blob::parse(aligned.as_bytes()).map_err(|e| e.to_string())?;
+    let policy = blob.policy().map_err(|e| e.to_string())?;
+    let word = |at: usize| -> usize {
+        u32::from_le_bytes([golden[at], golden[at + 1], golden[at + 2], golden[at + 3]]) as usize
+    };
+    let (dim, steps) = (word(0), word(4));
+    let mut out = golden[..8].to_vec();
+    let mut state = policy.initial_state();
+    let mut at = 8;
+    for _ in 0..steps {
+        let obs_bytes = &golden[at..at + 4 * dim];
+        let values: Vec<f32> = obs_bytes
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        let obs = Observation::from_values(&values).ok_or("observation size")?;
+        let mean = policy.act(&obs, &mut state).ok_or("policy.act")?;
+        out.extend_from_slice(obs_bytes);
+        for m in mean {
+            out.extend_from_slice(&f64::from(m).to_le_bytes());
+        }
+        at += 4 * dim + 4 * 8;
+    }
+    Ok(out)
 }
 
 fn golden_path(dir: &Path, row: TableRow) -> PathBuf {

@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use firmware_core::blob::{WeightDtype, convert_bytes};
 use firmware_core::policy::TableRow;
 
 use crate::{cortex_m, figure, inspect, size};
@@ -74,14 +75,64 @@ fn parse_synth(args: &[&str]) -> Result<Command, String> {
     })
 }
 
+fn parse_convert(args: &[&str]) -> Result<Command, String> {
+    let (mut dtype, mut input, mut out) = (None, None, None);
+    let mut it = args.iter();
+    while let Some(flag) = it.next() {
+        let value = it.next().ok_or_else(|| format!("{flag} needs a value"))?;
+        match *flag {
+            "--dtype" => {
+                dtype = Some(
+                    WeightDtype::from_name(value)
+                        .ok_or_else(|| format!("--dtype takes f32 or i8, not `{value}`"))?,
+                )
+            }
+            "--in" => input = Some(PathBuf::from(value)),
+            "--out" => out = Some(PathBuf::from(value)),
+            other => return Err(format!("convert: unknown flag `{other}`")),
+        }
+    }
+    Ok(Command::Convert {
+        dtype: dtype.ok_or("convert needs --dtype f32|i8")?,
+        input: input.ok_or("convert needs --in BLOB")?,
+        out: out.ok_or("convert needs --out BLOB")?,
+    })
+}
+
+/// Writes `bytes` to `out` through a temporary file, so a partial file never has the name.
+fn write_atomically(out: &std::path::Path, bytes: &[u8]) -> crate::error::Result<()> {
+    let tmp = out.with_extension("tmp");
+    std::fs::write(&tmp, bytes)
+        .and_then(|()| std::fs::rename(&tmp, out))
+        .map_err(|e| crate::error::Error::new(format!("writing {}: {e}", out.display())))
+}
+
+fn convert(
+    dtype: WeightDtype,
+    input: &std::path::Path,
+    out: &std::path::Path,
+) -> crate::error::Result<ExitCode> {
+    let bytes = std::fs::read(input)
+        .map_err(|e| crate::error::Error::new(format!("{}: {e}", input.display())))?;
+    let converted = convert_bytes(&bytes, dtype)
+        .map_err(|e| crate::error::Error::new(format!("{}: {e}", input.display())))?;
+    write_atomically(out, &converted)?;
+    println!(
+        "{} ({} bytes) -> {} ({} bytes, {}): {:.2}x",
+        input.display(),
+        bytes.len(),
+        out.display(),
+        converted.len(),
+        dtype.name(),
+        bytes.len() as f64 / converted.len() as f64
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
 fn synth_blob(row: TableRow, seed: u64, out: &std::path::Path) -> crate::error::Result<ExitCode> {
     let bytes = firmware_core::synthetic::blob(row, seed)
         .map_err(|e| crate::error::Error::new(format!("encoding the blob: {e}")))?;
-    // Write to a temporary file and rename, so a partial file never carries the name.
-    let tmp = out.with_extension("tmp");
-    std::fs::write(&tmp, &bytes)
-        .and_then(|()| std::fs::rename(&tmp, out))
-        .map_err(|e| crate::error::Error::new(format!("writing {}: {e}", out.display())))?;
+    write_atomically(out, &bytes)?;
     println!(
         "wrote {} ({} bytes): row {}, seed {seed}, synthetic random weights (never for flight)",
         out.display(),
@@ -97,8 +148,12 @@ usage: cargo run -p tools -- <subcommand>
 
 subcommands:
   inspect <blob>            decode a weight blob and print its header (exit 1 on a defect)
-  size-report               build the Cortex-M4 size images (rows A and G, f32, profile
-                            `firmware`) and report flash and RAM against an STM32F405
+  size-report               build the Cortex-M4 size images (rows A and G in f32, G in
+                            int8 linked for the STM32F405; profile `firmware`) and report
+                            flash and RAM against an STM32F405
+  convert --dtype f32|i8 --in BLOB --out BLOB
+                            re-encode a blob: f32 -> i8 quantises every matrix row
+                            (symmetric, f32 scales); i8 -> f32 writes the dequantised weights
   synth-blob --row X [--seed N] --out FILE
                             write a blob of Table 1 row X (A-G) with seeded random
                             weights: for trying the tools, never for flight
@@ -129,6 +184,15 @@ pub enum Command {
         /// Output file.
         out: PathBuf,
     },
+    /// Re-encode a blob in another dtype.
+    Convert {
+        /// The output dtype.
+        dtype: WeightDtype,
+        /// Input blob.
+        input: PathBuf,
+        /// Output blob.
+        out: PathBuf,
+    },
     /// Draw an overtake from a recorded race.
     OvertakeFigure(figure::FigureArgs),
     /// Run the QEMU test image.
@@ -151,6 +215,7 @@ pub fn parse(args: &[String]) -> Result<Command, String> {
         ["size-report"] => Ok(Command::SizeReport),
         ["size-report", ..] => Err("size-report takes no arguments".into()),
         ["synth-blob", rest @ ..] => parse_synth(rest),
+        ["convert", rest @ ..] => parse_convert(rest),
         ["overtake-figure", rest @ ..] => parse_figure(rest),
         ["cortex-m", "test"] => Ok(Command::CortexMTest),
         ["cortex-m", "icount"] => Ok(Command::CortexMIcount { breakdown: false }),
@@ -177,6 +242,7 @@ pub fn main(args: Vec<String>) -> ExitCode {
         Command::Inspect(path) => inspect::run(&path),
         Command::SizeReport => size::run(),
         Command::SynthBlob { row, seed, out } => synth_blob(row, seed, &out),
+        Command::Convert { dtype, input, out } => convert(dtype, &input, &out),
         Command::OvertakeFigure(args) => figure::run(&args),
         Command::CortexMTest => cortex_m::run_tests(),
         Command::CortexMIcount { breakdown } => cortex_m::run_icount(breakdown),
@@ -223,6 +289,45 @@ mod tests {
                 out: "g.blob".into()
             })
         );
+        assert_eq!(
+            parse(&args(&[
+                "convert", "--dtype", "i8", "--in", "a.blob", "--out", "b.blob"
+            ])),
+            Ok(Command::Convert {
+                dtype: WeightDtype::I8,
+                input: "a.blob".into(),
+                out: "b.blob".into()
+            })
+        );
+    }
+
+    #[test]
+    fn converts_a_blob_to_int8_and_refuses_garbage() {
+        let dir = std::env::temp_dir().join(format!("overtake-convert-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let (f, q) = (dir.join("g.blob"), dir.join("g_i8.blob"));
+        let bytes = firmware_core::synthetic::blob(TableRow::G, 3).expect("encode");
+        std::fs::write(&f, &bytes).expect("write");
+        assert_eq!(
+            convert(WeightDtype::I8, &f, &q).ok(),
+            Some(ExitCode::SUCCESS)
+        );
+        let out = std::fs::read(&q).expect("read");
+        let aligned = firmware_core::blob::AlignedBytes::new(&out);
+        let blob = firmware_core::Blob::parse(aligned.as_bytes()).expect("a valid blob");
+        assert_eq!(blob.header().dtype, WeightDtype::I8);
+        assert!(
+            out.len() * 3 < bytes.len(),
+            "{} vs {}",
+            out.len(),
+            bytes.len()
+        );
+        std::fs::write(&f, b"OVTK garbage").expect("write");
+        let err = convert(WeightDtype::I8, &f, &q).expect_err("garbage");
+        assert!(err.to_string().contains("not a valid blob"), "{err}");
+        // The earlier output was not touched by the failed conversion.
+        assert_eq!(std::fs::read(&q).expect("read"), out);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
@@ -237,6 +342,9 @@ mod tests {
             &["synth-blob", "--row", "H", "--out", "x"],
             &["synth-blob", "--row", "A"],
             &["synth-blob", "--out", "x", "--seed", "-1"],
+            &["convert", "--dtype", "f16", "--in", "a", "--out", "b"],
+            &["convert", "--in", "a", "--out", "b"],
+            &["convert", "--dtype", "i8", "--in", "a"],
         ] {
             assert!(parse(&args(bad)).is_err(), "{bad:?}");
         }

@@ -119,14 +119,14 @@ pub fn run_icount(breakdown: bool) -> Result<ExitCode> {
     spawn(c, "the instruction-count bench")
 }
 
-/// Builds bins of [`PACKAGE`] for [`TARGET`] with `profile` and returns `(bin, ELF path)`
+/// Builds bins of `package` for [`TARGET`] with `profile` and returns `(bin, ELF path)`
 /// for each, from cargo's JSON messages.
-pub fn build_bins(profile: &str, bins: &[&str]) -> Result<Vec<(String, PathBuf)>> {
+pub fn build_bins(package: &str, profile: &str, bins: &[&str]) -> Result<Vec<(String, PathBuf)>> {
     let mut c = cargo();
     c.args([
         "build",
         "-p",
-        PACKAGE,
+        package,
         "--profile",
         profile,
         "--target",

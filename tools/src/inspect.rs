@@ -4,7 +4,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 use std::process::ExitCode;
 
-use firmware_core::blob::{AlignedBytes, Blob, BlobHeader, CRC_LEN};
+use firmware_core::blob::{AlignedBytes, Blob, BlobHeader, CRC_LEN, WeightDtype};
 use firmware_core::policy::{Architecture, TableRow};
 
 use crate::{Error, Result};
@@ -102,11 +102,15 @@ pub fn describe(path: &Path, bytes: &[u8], blob: &Blob<'_>) -> String {
         p.preset.as_str(),
         p.config_hash
     );
+    let payload = match h.dtype {
+        WeightDtype::F32 => "all finite",
+        WeightDtype::I8 => "int8 rows with f32 scales and biases",
+    };
     let _ = writeln!(
         s,
-        "  payload:        {} bytes = {} weights (all finite)",
+        "  payload:        {} bytes = {} weights ({payload})",
         h.payload_len,
-        blob.weights().len()
+        a.param_count()
     );
     let crc = blob
         .len()

@@ -1,6 +1,8 @@
-//! `size-report`: flash and RAM of the Cortex-M4 size images (`size-a`, `size-g` of
-//! `tools/cortex-m-tests`: one f32 blob each and a minimal program that steps the
-//! controller), read from their ELF files, against an STM32F405.
+//! `size-report`: flash and RAM of the Cortex-M4 size images, read from their ELF files,
+//! against an STM32F405: `size-a`, `size-g` of `tools/cortex-m-tests` (one f32 blob each and
+//! a minimal program that steps the controller) and `tools/stm32f405-fit` (the same program
+//! with row G in int8, linked against the F405's own memory map: that it links at all is the
+//! fit check).
 //!
 //! Measured (from the ELF's section headers): flash = every allocated section with contents
 //! (`.vector_table`, `.text`, `.rodata`, the load image of `.data`); static RAM = every
@@ -15,11 +17,12 @@ use std::fmt::Write as _;
 use std::path::Path;
 use std::process::ExitCode;
 
+use firmware_core::blob::{WeightDtype, convert_bytes};
 use firmware_core::policy::TableRow;
 use firmware_core::synthetic;
 use object::{Object, ObjectSection, ObjectSymbol, SectionFlags, SectionKind};
 
-use crate::cortex_m::build_bins;
+use crate::cortex_m::{PACKAGE, build_bins, workspace_root};
 use crate::{Error, Result};
 
 /// STM32F405 flash (bytes): 1 MB.
@@ -113,11 +116,18 @@ pub fn read_elf(path: &Path) -> Result<ImageSizes> {
     })
 }
 
+/// The package of the STM32F405 fit image.
+pub const F405_PACKAGE: &str = "stm32f405-fit";
+
 /// One row of the report.
 #[derive(Clone, Debug)]
 pub struct Row {
+    /// The image (its bin name).
+    pub image: String,
     /// Table 1 row of the blob.
     pub row: TableRow,
+    /// How the blob stores its weights.
+    pub dtype: WeightDtype,
     /// Bytes of the embedded blob (regenerated here exactly as build.rs does).
     pub blob_bytes: u64,
     /// The ELF's sizes.
@@ -144,19 +154,20 @@ pub fn report(rows: &[Row]) -> String {
     );
     let _ = writeln!(
         s,
-        "each: cortex-m-rt, firmware-core's Controller (code for every Table 1 architecture: the blob picks one at run time), one f32 blob\n"
+        "each: cortex-m-rt, firmware-core's Controller (code for every Table 1 architecture and both dtypes: the blob picks at run time), one blob\n"
     );
     let _ = writeln!(
         s,
-        "{:<8} {:>10} {:>12} {:>12} {:>14} {:>14} {:>14}",
-        "image", "blob", "flash", "code+data", "static RAM", "step RAM*", "RAM total"
+        "{:<14} {:>5} {:>10} {:>12} {:>12} {:>14} {:>14} {:>14}",
+        "image", "dtype", "blob", "flash", "code+data", "static RAM", "step RAM*", "RAM total"
     );
     for r in rows {
         let step = r.step_ram();
         let _ = writeln!(
             s,
-            "{:<8} {:>10} {:>12} {:>12} {:>14} {:>14} {:>14}",
-            format!("size-{}", r.row.letter().to_ascii_lowercase()),
+            "{:<14} {:>5} {:>10} {:>12} {:>12} {:>14} {:>14} {:>14}",
+            r.image,
+            r.dtype.name(),
             r.blob_bytes,
             r.sizes.flash,
             r.sizes.flash.saturating_sub(r.blob_bytes),
@@ -189,12 +200,7 @@ pub fn report(rows: &[Row]) -> String {
             .iter()
             .map(|x| format!("{} {}", x.name, x.size))
             .collect();
-        let _ = writeln!(
-            s,
-            "  size-{}: {}",
-            r.row.letter().to_ascii_lowercase(),
-            list.join(", ")
-        );
+        let _ = writeln!(s, "  {}: {}", r.image, list.join(", "));
     }
     let _ = writeln!(
         s,
@@ -208,11 +214,7 @@ pub fn report(rows: &[Row]) -> String {
 
 /// The plain-sentence verdict for one image.
 pub fn verdict(r: &Row) -> String {
-    let name = format!(
-        "Row {} (size-{})",
-        r.row.letter(),
-        r.row.letter().to_ascii_lowercase()
-    );
+    let name = format!("Row {} {} ({})", r.row.letter(), r.dtype.name(), r.image);
     let ram = r.sizes.ram + r.step_ram().unwrap_or(0);
     let flash = if r.sizes.flash <= F405_FLASH_BYTES {
         format!(
@@ -222,9 +224,10 @@ pub fn verdict(r: &Row) -> String {
         )
     } else {
         format!(
-            "does NOT fit the STM32F405's flash: {} bytes > {F405_FLASH_BYTES} (over by {} bytes; the f32 blob alone is {} bytes)",
+            "does NOT fit the STM32F405's flash: {} bytes > {F405_FLASH_BYTES} (over by {} bytes; the {} blob alone is {} bytes)",
             r.sizes.flash,
             r.sizes.flash - F405_FLASH_BYTES,
+            r.dtype.name(),
             r.blob_bytes
         )
     };
@@ -238,9 +241,26 @@ pub fn verdict(r: &Row) -> String {
     format!("{name} {flash}; {ram}.")
 }
 
+/// The bytes of the F405 image's blob, made as its build script makes them:
+/// `policies/stage2.blob` (or, while there is none, row G's synthetic blob) in int8.
+pub fn f405_blob() -> Result<(Vec<u8>, String)> {
+    let shipped = workspace_root().join("policies/stage2.blob");
+    let (source, what) = match std::fs::read(&shipped) {
+        Ok(bytes) => (bytes, "policies/stage2.blob".to_string()),
+        Err(_) => (
+            synthetic::blob(TableRow::G, synthetic::golden_seed(TableRow::G))
+                .map_err(|e| Error::new(format!("encoding the synthetic G blob: {e}")))?,
+            "row G's synthetic weights (policies/stage2.blob does not exist yet)".to_string(),
+        ),
+    };
+    let bytes = convert_bytes(&source, WeightDtype::I8)
+        .map_err(|e| Error::new(format!("{}: {e}", shipped.display())))?;
+    Ok((bytes, what))
+}
+
 /// Builds the size images, reads them and prints the report.
 pub fn run() -> Result<ExitCode> {
-    let built = build_bins(PROFILE, &["size-a", "size-g"])?;
+    let built = build_bins(PACKAGE, PROFILE, &["size-a", "size-g"])?;
     let mut rows = Vec::new();
     for (bin, path) in &built {
         let row = if bin == "size-a" {
@@ -248,17 +268,31 @@ pub fn run() -> Result<ExitCode> {
         } else {
             TableRow::G
         };
-        let seed = 0x0DD5_EED0 + row.letter() as u64;
-        let blob = synthetic::blob(row, seed)
+        let blob = synthetic::blob(row, synthetic::golden_seed(row))
             .map_err(|e| Error::new(format!("encoding blob {}: {e}", row.letter())))?;
         rows.push(Row {
+            image: bin.clone(),
             row,
+            dtype: WeightDtype::F32,
             blob_bytes: blob.len() as u64,
             sizes: read_elf(path)?,
         });
     }
     rows.sort_by_key(|r| r.row.letter());
+    let (blob, what) = f405_blob()?;
+    for (bin, path) in build_bins(F405_PACKAGE, PROFILE, &[F405_PACKAGE])? {
+        rows.push(Row {
+            image: bin,
+            row: TableRow::G,
+            dtype: WeightDtype::I8,
+            blob_bytes: blob.len() as u64,
+            sizes: read_elf(&path)?,
+        });
+    }
     print!("{}", report(&rows));
+    println!(
+        "{F405_PACKAGE} holds {what} and is linked against the STM32F405's memory map (tools/stm32f405-fit/memory.x): it linked, so it fits."
+    );
     Ok(ExitCode::SUCCESS)
 }
 
@@ -268,7 +302,9 @@ mod tests {
 
     fn row(row: TableRow, flash: u64, ram: u64) -> Row {
         Row {
+            image: "size-x".into(),
             row,
+            dtype: WeightDtype::F32,
             blob_bytes: 1000,
             sizes: ImageSizes {
                 sections: vec![],

@@ -26,6 +26,26 @@ pub static BLOB_F: &[u8] = aligned_out_dir_bytes!("blob_F.bin");
 /// Row G's synthetic blob (2-layer LSTM 128 + MLP 256, 128, 128, 64).
 pub static BLOB_G: &[u8] = aligned_out_dir_bytes!("blob_G.bin");
 
+/// Row A's synthetic weights quantised to int8 (`synthetic::blob_i8`).
+pub static BLOB_A_I8: &[u8] = aligned_out_dir_bytes!("blob_A_i8.bin");
+/// Row G's synthetic weights quantised to int8: 320,288 payload bytes.
+pub static BLOB_G_I8: &[u8] = aligned_out_dir_bytes!("blob_G_i8.bin");
+
+/// The host's int8 outputs of rows A and G over their golden observations (golden layout,
+/// see [`crate::golden`]), which the M4 must reproduce bit for bit.
+pub static INT8: [(char, &[u8], &[u8]); 2] = [
+    (
+        'A',
+        BLOB_A_I8,
+        include_bytes!(concat!(env!("OUT_DIR"), "/int8_A.bin")),
+    ),
+    (
+        'G',
+        BLOB_G_I8,
+        include_bytes!(concat!(env!("OUT_DIR"), "/int8_G.bin")),
+    ),
+];
+
 /// Size of row A's blob, for a RAM copy.
 pub const BLOB_A_LEN: usize = include_bytes!(concat!(env!("OUT_DIR"), "/blob_A.bin")).len();
 

@@ -82,6 +82,9 @@ mod image {
         for &(row, blob, golden) in &data::GOLDEN {
             golden_inference(&mut r, row, blob, golden);
         }
+        for &(row, blob, expected) in &data::INT8 {
+            int8_inference(&mut r, row, blob, expected);
+        }
         blob_defects(&mut r);
         observation(&mut r);
         controller(&mut r);
@@ -114,7 +117,7 @@ mod image {
         let Ok(policy) = blob.policy() else {
             return r.check(name, false);
         };
-        let in_flash = (blob.weights().as_ptr() as usize) < cortex_m_tests::CODE_REGION_BYTES;
+        let in_flash = (blob.payload_words().as_ptr() as usize) < cortex_m_tests::CODE_REGION_BYTES;
         let mut state = policy.initial_state();
         let mut max_err = 0.0f64;
         let mut ok = in_flash && golden.steps() > 0;
@@ -137,13 +140,57 @@ mod image {
         hprintln!(
             "  row {}: {} weights read in place at {:#010x}, {} steps, max |M4 f32 - f64 reference| = {:.3e} (tolerance {:.0e})",
             row,
-            blob.weights().len(),
-            blob.weights().as_ptr() as usize,
+            blob.header().architecture.param_count(),
+            blob.payload_words().as_ptr() as usize,
             golden.steps(),
             max_err,
             GOLDEN_TOLERANCE
         );
         r.check(name, ok && max_err <= GOLDEN_TOLERANCE);
+    }
+
+    /// An int8 blob in flash, `policy.act` over the golden observations: every output must
+    /// be the host's bit for bit (the SMLAD kernel against the portable one).
+    fn int8_inference(r: &mut Runner, row: char, blob: &'static [u8], expected: &'static [u8]) {
+        let name = match row {
+            'A' => "int8_row_a_matches_host_bits",
+            'G' => "int8_row_g_matches_host_bits",
+            _ => "int8_row_unknown",
+        };
+        let (Some(expected), Ok(blob)) = (Golden::parse(expected), Blob::parse(blob)) else {
+            hprintln!("  row {} int8: blob or expected data does not parse", row);
+            return r.check(name, false);
+        };
+        let Ok(policy) = blob.policy() else {
+            return r.check(name, false);
+        };
+        let mut state = policy.initial_state();
+        let (mut identical, mut total, mut max_diff) = (0u32, 0u32, 0.0f64);
+        for i in 0..expected.steps() {
+            let Some(step) = expected.step(i) else {
+                return r.check(name, false);
+            };
+            let Some(obs) = Observation::from_values(step.obs()) else {
+                return r.check(name, false);
+            };
+            let Some(mean) = policy.act(&obs, &mut state) else {
+                return r.check(name, false);
+            };
+            for (got, want) in mean.iter().zip(step.mean) {
+                total += 1;
+                identical += u32::from(f64::from(*got).to_bits() == want.to_bits());
+                max_diff = max_diff.max((f64::from(*got) - want).abs());
+            }
+        }
+        hprintln!(
+            "  row {} int8: {} payload bytes in flash, {} of {} outputs bit-identical to the host (max |diff| {:e})",
+            row,
+            blob.header().payload_len,
+            identical,
+            total,
+            max_diff
+        );
+        r.check(name, total > 0 && identical == total);
     }
 
     static mut RAM_BLOB: Aligned<[u8; BLOB_A_LEN]> = Aligned([0; BLOB_A_LEN]);

@@ -101,7 +101,7 @@ mod bench {
             report(
                 "Policy::act",
                 &act_stats,
-                b.weights().len() as u64,
+                b.header().architecture.param_count() as u64,
                 "weight",
             );
         }
@@ -109,7 +109,10 @@ mod bench {
         let (Ok(a), Ok(g)) = (Blob::parse(BLOB_A), Blob::parse(BLOB_G)) else {
             return;
         };
-        let mut ra = WeightReader::new(a.weights());
+        let (Some(aw), Some(gw)) = (a.weights(), g.weights()) else {
+            return;
+        };
+        let mut ra = WeightReader::new(aw);
         let (Ok(a1), Ok(a2), Ok(a3)) = (
             Linear::<17, 128>::load(&mut ra),
             Linear::<128, 128>::load(&mut ra),
@@ -117,7 +120,7 @@ mod bench {
         ) else {
             return;
         };
-        let mut r = WeightReader::new(g.weights());
+        let mut r = WeightReader::new(gw);
         let (Ok(l0), Ok(l1)) = (
             LstmCell::<30, 128>::load(&mut r),
             LstmCell::<128, 128>::load(&mut r),
@@ -418,20 +421,18 @@ mod bench {
         let (Ok(a), Ok(g)) = (Blob::parse(BLOB_A), Blob::parse(BLOB_G)) else {
             return;
         };
+        let (Some(aw), Some(gw)) = (a.weights(), g.weights()) else {
+            return;
+        };
         hprintln!("dot-product kernels on the same weights (10 calls each):");
         let g_mlp = LstmCell::<30, 128>::PARAMS + LstmCell::<128, 128>::PARAMS;
-        layer::<128, 256>(counter, "row G MLP layer 1", g.weights(), g_mlp);
+        layer::<128, 256>(counter, "row G MLP layer 1", gw, g_mlp);
         layer::<256, 128>(
             counter,
             "row G MLP layer 2",
-            g.weights(),
+            gw,
             g_mlp + Linear::<128, 256>::PARAMS,
         );
-        layer::<128, 128>(
-            counter,
-            "row A layer 2",
-            a.weights(),
-            Linear::<17, 128>::PARAMS,
-        );
+        layer::<128, 128>(counter, "row A layer 2", aw, Linear::<17, 128>::PARAMS);
     }
 }

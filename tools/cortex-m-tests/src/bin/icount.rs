@@ -1,4 +1,5 @@
-//! Instructions per `Controller::step` on the emulated Cortex-M4F, for rows A and G (f32).
+//! Instructions per `Controller::step` on the emulated Cortex-M4F, for rows A and G in f32
+//! and in int8.
 //!
 //! Runs under `qemu-system-arm ... -icount shift=0` (1 ns of virtual time per instruction)
 //! and counts with SysTick (25 MHz: one tick per 40 instructions). It first calibrates on a
@@ -42,7 +43,7 @@ mod bench {
     use cortex_m_semihosting::debug::{self, EXIT_FAILURE, EXIT_SUCCESS};
     use cortex_m_semihosting::hprintln;
     use cortex_m_tests::counter::{Counter, INSTRUCTIONS_PER_TICK, Stats, start_calibrated};
-    use cortex_m_tests::data::{BLOB_A, BLOB_G};
+    use cortex_m_tests::data::{BLOB_A, BLOB_A_I8, BLOB_G, BLOB_G_I8};
     use cortex_m_tests::fixtures::{FLIGHT_STEPS, flight};
     use cortex_m_tests::stack;
     use firmware_core::Controller;
@@ -51,6 +52,7 @@ mod bench {
     /// Targets of the issue (instructions per step).
     const TARGET_A: u64 = 90_000;
     const TARGET_G: u64 = 1_300_000;
+    const TARGET_G_I8: u64 = 1_000_000;
 
     pub fn run() -> ! {
         let Some(p) = cortex_m::Peripherals::take() else {
@@ -61,16 +63,22 @@ mod bench {
             }
         };
         let counter = start_calibrated(p.SYST);
-        let a = controller_steps(&counter, 'A', BLOB_A, TARGET_A);
-        let g = controller_steps(&counter, 'G', BLOB_G, TARGET_G);
+        let a = controller_steps(&counter, "A", BLOB_A, TARGET_A);
+        let g = controller_steps(&counter, "G", BLOB_G, TARGET_G);
+        let a8 = controller_steps(&counter, "A int8", BLOB_A_I8, TARGET_A);
+        let g8 = controller_steps(&counter, "G int8", BLOB_G_I8, TARGET_G_I8);
         hprintln!(
-            "icount: A {} instructions/step (target {}: {}), G {} instructions/step (target {}: {})",
+            "icount: A {} instructions/step (target {}: {}), G {} instructions/step (target {}: {}); int8: A {}, G {} instructions/step (target {}: {})",
             a,
             TARGET_A,
             verdict(a, TARGET_A),
             g,
             TARGET_G,
-            verdict(g, TARGET_G)
+            verdict(g, TARGET_G),
+            a8,
+            g8,
+            TARGET_G_I8,
+            verdict(g8, TARGET_G_I8)
         );
         debug::exit(EXIT_SUCCESS);
         loop {
@@ -89,7 +97,7 @@ mod bench {
     }
 
     /// Mean instructions of `Controller::step` over the flight (one warm-up step first).
-    fn controller_steps(counter: &Counter, row: char, blob: &'static [u8], target: u64) -> u64 {
+    fn controller_steps(counter: &Counter, row: &str, blob: &'static [u8], target: u64) -> u64 {
         let Ok(mut c) = Controller::from_bytes(blob, Track::figure_eight()) else {
             hprintln!("row {}: blob does not load", row);
             debug::exit(EXIT_FAILURE);
