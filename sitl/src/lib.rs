@@ -17,6 +17,7 @@ pub mod eval;
 pub mod files;
 pub mod pilot;
 pub mod plot;
+pub mod quant;
 pub mod referee;
 pub mod stats;
 pub mod world;

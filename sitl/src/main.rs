@@ -45,6 +45,24 @@ enum Command {
     Race(RaceArgs),
     /// Run one controller as a MAVLink endpoint on a UDP port (what `race` starts).
     Fc(FcArgs),
+    /// Convert an f32 blob to int8 and measure what it costs: the int8 policy's action
+    /// error on the observations of races the f32 policy flies, then both blobs' Table-1
+    /// rows over the same seeded episodes.
+    Int8Check(Int8CheckArgs),
+}
+
+#[derive(Args)]
+struct Int8CheckArgs {
+    /// The f32 policy blob.
+    #[arg(long)]
+    ego: String,
+    /// The opponent (a blob or "baseline[...]"); without one, time trials.
+    #[arg(long)]
+    opponent: Option<String>,
+    #[command(flatten)]
+    common: Common,
+    #[command(flatten)]
+    scoring: Scoring,
 }
 
 #[derive(Args)]
@@ -301,6 +319,57 @@ fn eval(args: EvalArgs) -> Result<(), String> {
         eprintln!("wrote {}", path.display());
     }
     Ok(())
+}
+
+fn int8_check(args: Int8CheckArgs) -> Result<ExitCode, String> {
+    let preset = args.common.preset;
+    let raw = std::fs::read(&args.ego).map_err(|e| format!("--ego {}: {e}", args.ego))?;
+    let opponent = args
+        .opponent
+        .as_deref()
+        .map(|o| PilotSpec::load(o, &preset).map_err(|e| format!("--opponent: {e}")))
+        .transpose()?;
+    let config = args.scoring.eval_config(&args.common);
+    let started = std::time::Instant::now();
+    let c = sitl::quant::compare(&raw, opponent.as_ref(), &config)
+        .map_err(|e| format!("--ego {}: {e}", args.ego))?;
+    let e = &c.action_error;
+    println!(
+        "{}: f32 {} bytes -> int8 {} bytes ({:.2}x smaller)",
+        args.ego,
+        c.blob_bytes[0],
+        c.blob_bytes[1],
+        c.blob_bytes[0] as f64 / c.blob_bytes[1] as f64
+    );
+    println!(
+        "action error of int8 on the f32 policy's observations ({} episodes, {} steps x 4 actions): max {:.4}, mean {:.5} (clipped actions in [-1, 1]); unclipped means max {:.4}",
+        config.episodes, e.steps, e.max_abs, e.mean_abs, e.max_abs_unclipped
+    );
+    println!("\nf32:\n{}", c.f32_report.table());
+    println!("int8:\n{}", c.int8_report.table());
+    let within = c.within_f32_intervals();
+    println!(
+        "int8 success rate and crash rate {} the f32 blob's 95% intervals ({:.1} s wall-clock)",
+        if within {
+            "lie inside"
+        } else {
+            "do NOT lie inside"
+        },
+        started.elapsed().as_secs_f64()
+    );
+    if let Some(path) = &args.scoring.json {
+        let json = serde_json::to_string_pretty(&c).map_err(|e| e.to_string())?;
+        sitl::files::write_atomically(path, json.as_bytes())
+            .map_err(|e| format!("cannot write {}: {e}", path.display()))?;
+        eprintln!("wrote {}", path.display());
+    }
+    if e.replay_mismatches > 0 {
+        return Err(format!(
+            "{} steps where the replayed f32 policy disagreed with the controller: the measurement is broken",
+            e.replay_mismatches
+        ));
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 /// Writes `bytes` to a temporary file beside `path` and renames it over `path`: a reader
@@ -568,6 +637,7 @@ fn main() -> ExitCode {
         Command::Fly(a) => fly(a).map(|()| ExitCode::SUCCESS),
         Command::Race(a) => race(a),
         Command::Fc(a) => fc(a).map(|()| ExitCode::SUCCESS),
+        Command::Int8Check(a) => int8_check(a),
     };
     match result {
         Ok(code) => code,
