@@ -108,10 +108,11 @@ pub struct Controller<'w> {
 }
 
 /// Stack a step uses beyond the activations [`crate::policy::PolicyG::SCRATCH_BYTES`] models:
-/// call frames, spills, the observation. Measured on the Cortex-M4 at about 500 B (a G step's
-/// stack high-water mark is 3,332 B against 2,832 B of modelled activations); budgeted at
-/// 1 KB, and the Cortex-M test image checks the measured high-water mark against the model.
-pub const STEP_FRAME_ALLOWANCE_BYTES: usize = 1024;
+/// call frames, spills, the observation. Measured on the Cortex-M4: a G step's stack
+/// high-water mark is 3,440 B in f32 and 4,024 B in int8 (the int8 kernel's frame nests in
+/// the head's) against 2,832 B of modelled activations, so 608 B and 1,192 B; budgeted at
+/// 1.5 KB, and the Cortex-M test image checks both measured marks against the model.
+pub const STEP_FRAME_ALLOWANCE_BYTES: usize = 1536;
 
 /// RAM of a row-G controller (bytes): the controller itself (recurrent state, weight views,
 /// bookkeeping) plus the stack one step uses (its activations and frames).

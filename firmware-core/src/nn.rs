@@ -399,10 +399,26 @@ impl<'w, const IN: usize, const H: usize> LstmCell<'w, IN, H> {
         // Pre-activations of the four gates, i f g o.
         let mut z = [[0.0f32; H]; 4];
         let flat = z.as_flattened_mut();
-        self.weight_ih.mul_add(x, flat);
-        self.weight_hh.mul_add(&state.h, flat);
-        for (zo, b) in flat.iter_mut().zip(self.bias) {
-            *zo += b;
+        match (self.weight_ih, self.weight_hh) {
+            // f32: both weight streams in one pass per row. Two passes cost the host G step
+            // 7 % (68.1 against 63.7 µs, mean of three paired runs); this form is at parity
+            // with the code before int8 (61.8 against 63.5 µs, two paired runs).
+            (Matrix::F32(w_ih), Matrix::F32(w_hh)) => {
+                let rows = w_ih
+                    .chunks_exact(IN)
+                    .zip(w_hh.chunks_exact(H))
+                    .zip(self.bias);
+                for (zo, ((ri, rh), bo)) in flat.iter_mut().zip(rows) {
+                    *zo = dot(ri, x) + dot(rh, &state.h) + bo;
+                }
+            }
+            (w_ih, w_hh) => {
+                w_ih.mul_add(x, flat);
+                w_hh.mul_add(&state.h, flat);
+                for (zo, b) in flat.iter_mut().zip(self.bias) {
+                    *zo += b;
+                }
+            }
         }
         let [zi, zf, zg, zo] = &z;
         let units = state.h.iter_mut().zip(state.c.iter_mut());

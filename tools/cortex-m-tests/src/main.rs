@@ -285,6 +285,9 @@ mod image {
         let Ok(mut c) = Controller::from_bytes(BLOB_G, Track::figure_eight()) else {
             return r.check("controller_from_bytes_g", false);
         };
+        let Ok(mut c8) = Controller::from_bytes(data::BLOB_G_I8, Track::figure_eight()) else {
+            return r.check("controller_from_bytes_g_int8", false);
+        };
         let (own, opponent) = flight(0);
         let mut bad = own;
         bad.position_m.x = f32::NAN;
@@ -319,6 +322,22 @@ mod image {
         r.check(
             "controller_g_ram_within_model_and_budget",
             ram <= CONTROLLER_G_RAM_BYTES && CONTROLLER_G_RAM_BYTES <= 8 * 1024,
+        );
+        // The int8 kernel's frame nests inside the head's: the same model must hold.
+        let stack8 = stack::high_water(&mut || {
+            let _ = c8.step(&own, Some(&opponent));
+        });
+        let ram8 = core::mem::size_of::<Controller<'static>>() + stack8;
+        hprintln!(
+            "  G int8 controller RAM: {} B struct + {} B step stack = {} B (model {} B, budget 8192 B)",
+            core::mem::size_of::<Controller<'static>>(),
+            stack8,
+            ram8,
+            CONTROLLER_G_RAM_BYTES
+        );
+        r.check(
+            "controller_g_int8_ram_within_model_and_budget",
+            ram8 <= CONTROLLER_G_RAM_BYTES,
         );
     }
 }
