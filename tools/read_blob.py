@@ -42,6 +42,43 @@ class Reader:
         return s
 
 
+def tensors(arch):
+    """(rows, cols) of every tensor in payload order; cols 0 for a bias."""
+    h, inp, out = arch["lstm_hidden"], arch["obs_dim"], []
+    for _ in range(arch["lstm_layers"]):
+        out += [(4 * h, inp), (4 * h, h), (4 * h, 0)]
+        inp = h
+    for w in arch["mlp_hidden"] + [arch["action_dim"]]:
+        out += [(w, inp), (w, 0)]
+        inp = w
+    return out
+
+
+def f32(x):
+    """x rounded to the nearest f32 (a product of an f32 and an int8 is exact in a double)."""
+    return struct.unpack("<f", struct.pack("<f", x))[0]
+
+
+def dequantize(arch, payload):
+    """The I8 payload's weights as scale * q, tensor by tensor (biases are f32)."""
+    at, weights = 0, []
+    for rows, cols in tensors(arch):
+        if cols == 0:
+            weights += struct.unpack_from(f"<{rows}f", payload, at)
+            at += 4 * rows
+            continue
+        scales = struct.unpack_from(f"<{rows}f", payload, at)
+        at += 4 * rows
+        stride = (cols + 3) // 4 * 4
+        for s in scales:
+            q = struct.unpack_from(f"<{cols}b", payload, at)
+            weights += [f32(v * s) for v in q]
+            at += stride
+    if at != len(payload):
+        raise SystemExit("int8 payload size mismatch")
+    return weights
+
+
 def read(path):
     blob = open(path, "rb").read()
     if blob[:4] != b"OVTK":
@@ -65,7 +102,7 @@ def read(path):
     }
     action_map = {"hover_rpm": r.f32(), "gain": r.f32()}
     control_period_ns = r.varint()
-    dtype = ["F32"][r.varint()]
+    dtype = ["F32", "I8"][r.varint()]
     provenance = {
         "name": r.string(),
         "seed": r.varint(),
@@ -81,7 +118,10 @@ def read(path):
     (stored,) = struct.unpack_from("<I", blob, end)
     if zlib.crc32(blob[:end]) != stored:
         raise SystemExit("CRC mismatch")
-    weights = struct.unpack_from(f"<{payload_len // 4}f", blob, offset)
+    if dtype == "F32":
+        weights = struct.unpack_from(f"<{payload_len // 4}f", blob, offset)
+    else:
+        weights = dequantize(arch, blob[offset:end])
     return {
         "architecture": arch,
         "observation": obs,

@@ -12,9 +12,19 @@ fn the_python_reader_agrees_with_firmware_core() {
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/../tools/read_blob.py");
     let dir = std::env::temp_dir().join(format!("overtake-blob-doc-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
-    for row in [TableRow::A, TableRow::G] {
-        let bytes = synthetic::blob(row, 77).expect("encode");
-        let path = dir.join(format!("{}.blob", row.letter()));
+    for (row, int8) in [
+        (TableRow::A, false),
+        (TableRow::G, false),
+        (TableRow::A, true),
+        (TableRow::G, true),
+    ] {
+        let bytes = if int8 {
+            synthetic::blob_i8(row, 77)
+        } else {
+            synthetic::blob(row, 77)
+        }
+        .expect("encode");
+        let path = dir.join(format!("{}{}.blob", row.letter(), if int8 { "8" } else { "" }));
         std::fs::write(&path, &bytes).expect("write blob");
         let out = Command::new("python3")
             .arg(script)
@@ -31,7 +41,7 @@ fn the_python_reader_agrees_with_firmware_core() {
         let aligned = AlignedBytes::new(&bytes);
         let blob = Blob::parse(aligned.as_bytes()).expect("parse");
         let h = blob.header();
-        let w = blob.weights().expect("an f32 blob");
+        let w = blob.dequantized();
         let widths = h
             .architecture
             .mlp_hidden
@@ -49,6 +59,7 @@ fn the_python_reader_agrees_with_firmware_core() {
             format!("\"payload_len\": {}", h.payload_len),
             format!("\"count\": {}", w.len()),
             format!("\"layout\": \"{:?}\"", h.observation.layout),
+            format!("\"dtype\": \"{:?}\"", h.dtype),
         ] {
             assert!(
                 json.contains(&needle),
@@ -56,13 +67,19 @@ fn the_python_reader_agrees_with_firmware_core() {
                 row.letter()
             );
         }
-        // The first weight, printed by Python from the f32 it read, parses back to ours.
-        let first = json
-            .split("\"first\": [")
-            .nth(1)
-            .and_then(|s| s.split(',').next())
-            .expect("first weight");
-        assert_eq!(first.trim().parse::<f32>().expect("number"), w[0]);
+        // The first and last weights, printed by Python from what it read (for int8, its own
+        // dequantisation), parse back to ours.
+        let numbers = |key: &str| -> Vec<f32> {
+            json.split(&format!("\"{key}\": ["))
+                .nth(1)
+                .and_then(|s| s.split(']').next())
+                .expect(key)
+                .split(',')
+                .map(|v| v.trim().parse::<f32>().expect("number"))
+                .collect()
+        };
+        assert_eq!(numbers("first"), w[..4]);
+        assert_eq!(numbers("last"), w[w.len() - 4..]);
     }
     std::fs::remove_dir_all(&dir).expect("clean up");
 }
