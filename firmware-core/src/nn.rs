@@ -147,7 +147,7 @@ pub enum Matrix<'w> {
 impl Matrix<'_> {
     /// `y[r] += W[r] · x` for every row `r < y.len()`, with `x.len()` columns.
     ///
-    /// f32: [`dot`] per row. int8: `x` is quantised once to int16 with one scale per vector
+    /// f32: `dot` per row. int8: `x` is quantised once to int16 with one scale per vector
     /// (`s_x = max |x| / 32767`, round to nearest), each row's integer dot product is exact
     /// in i32 ([`dot_i8_i16`]), and `y[r] += (acc · (scale[r] · s_x))`. The integer sums
     /// are the same on every target, so host and Cortex-M compute the same bits.
@@ -219,8 +219,11 @@ fn quantize_i16(x: &[f32], out: &mut [u32]) -> f32 {
     max / 32767.0
 }
 
-/// The exact integer dot product of a row of int8 weights (four per word) with int16
-/// activations laid out by [`quantize_i16`].
+/// The exact integer dot product of a row of int8 weights (four per word, little-endian)
+/// with int16 activations, two words of pairs per weight word: for weights
+/// `(w0, w1, w2, w3)`, `x[2k] = (x0, x2)` and `x[2k + 1] = (x1, x3)` as (low, high)
+/// halfwords, the pairing SXTB16 produces (the layout [`Matrix::mul_add`] quantises its
+/// input to).
 ///
 /// On the Cortex-M4 (DSP extension) each word is two SXTB16 and two SMLAD (four MACs in
 /// four instructions); elsewhere the same sum in portable Rust. Cannot overflow: at most

@@ -24,7 +24,11 @@ fn the_python_reader_agrees_with_firmware_core() {
             synthetic::blob(row, 77)
         }
         .expect("encode");
-        let path = dir.join(format!("{}{}.blob", row.letter(), if int8 { "8" } else { "" }));
+        let path = dir.join(format!(
+            "{}{}.blob",
+            row.letter(),
+            if int8 { "8" } else { "" }
+        ));
         std::fs::write(&path, &bytes).expect("write blob");
         let out = Command::new("python3")
             .arg(script)
