@@ -35,6 +35,15 @@ impl EvalConfig {
         })
     }
 
+    /// The episodes' settings: length, spawn, seed.
+    pub fn episode(&self, race: bool) -> EpisodeConfig {
+        EpisodeConfig {
+            seconds: self.seconds,
+            spawn: self.spawn_mode(race),
+            seed: self.seed,
+        }
+    }
+
     /// The world episodes are flown in: the figure-8, stage-2 crash rules in a race (15 m
     /// bounds, 0.2 m separation), stage-1 rules alone (25 m).
     pub fn world(&self, race: bool) -> World {
@@ -70,11 +79,7 @@ pub fn evaluate(
 ) -> Vec<Episode> {
     let race = opponent.is_some();
     let world = config.world(race);
-    let episode = EpisodeConfig {
-        seconds: config.seconds,
-        spawn: config.spawn_mode(race),
-        seed: config.seed,
-    };
+    let episode = config.episode(race);
     (0..config.episodes)
         .into_par_iter()
         .map(|i| {

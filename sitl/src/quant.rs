@@ -10,7 +10,7 @@
 
 use crate::eval::{EvalConfig, Report};
 use crate::pilot::{Pilot, PilotSpec};
-use crate::referee::{EpisodeConfig, EpisodeMetrics, run_episode};
+use crate::referee::{EpisodeMetrics, run_episode};
 use firmware_core::blob::{AlignedBytes, Blob, WeightDtype, convert_bytes};
 use firmware_core::policy::{Policy, PolicyState};
 use firmware_core::track::Track;
@@ -140,11 +140,7 @@ pub fn compare(
     let int8_bytes = AlignedBytes::new(&int8);
     let race = opponent.is_some();
     let world = config.world(race);
-    let episode = EpisodeConfig {
-        seconds: config.seconds,
-        spawn: config.spawn_mode(race),
-        seed: config.seed,
-    };
+    let episode = config.episode(race);
     let flights: Vec<(EpisodeMetrics, ActionError)> = (0..config.episodes)
         .into_par_iter()
         .map(|i| {

@@ -44,6 +44,7 @@ mod image {
     use firmware_core::blob::{Blob, BlobError};
     use firmware_core::controller::{CONTROLLER_G_RAM_BYTES, Controller, StepFault};
     use firmware_core::observation::{Observation, ObservationLayout, ObservationSpec};
+    use firmware_core::policy::Policy;
     use firmware_core::track::Track;
     use firmware_core::vehicle::MotorCommand;
 
@@ -118,25 +119,14 @@ mod image {
             return r.check(name, false);
         };
         let in_flash = (blob.payload_words().as_ptr() as usize) < cortex_m_tests::CODE_REGION_BYTES;
-        let mut state = policy.initial_state();
         let mut max_err = 0.0f64;
-        let mut ok = in_flash && golden.steps() > 0;
-        for i in 0..golden.steps() {
-            let Some(step) = golden.step(i) else {
-                return r.check(name, false);
-            };
-            let Some(obs) = Observation::from_values(step.obs()) else {
-                return r.check(name, false);
-            };
-            let Some(mean) = policy.act(&obs, &mut state) else {
-                return r.check(name, false);
-            };
-            for (got, want) in mean.iter().zip(step.mean) {
-                let err = (f64::from(*got) - want).abs();
-                ok &= err.is_finite();
-                max_err = max_err.max(err);
-            }
-        }
+        let mut finite = true;
+        let replayed = replay(&policy, &golden, |got, want| {
+            let err = (f64::from(got) - want).abs();
+            finite &= err.is_finite();
+            max_err = max_err.max(err);
+        });
+        let ok = in_flash && golden.steps() > 0 && replayed && finite;
         hprintln!(
             "  row {}: {} weights read in place at {:#010x}, {} steps, max |M4 f32 - f64 reference| = {:.3e} (tolerance {:.0e})",
             row,
@@ -147,6 +137,27 @@ mod image {
             GOLDEN_TOLERANCE
         );
         r.check(name, ok && max_err <= GOLDEN_TOLERANCE);
+    }
+
+    /// `policy.act` over `golden`'s observations from a zero state, each output given to
+    /// `each` with its expected value; false when the data or the policy fails.
+    fn replay(policy: &Policy<'_>, golden: &Golden<'_>, mut each: impl FnMut(f32, f64)) -> bool {
+        let mut state = policy.initial_state();
+        for i in 0..golden.steps() {
+            let Some(step) = golden.step(i) else {
+                return false;
+            };
+            let Some(obs) = Observation::from_values(step.obs()) else {
+                return false;
+            };
+            let Some(mean) = policy.act(&obs, &mut state) else {
+                return false;
+            };
+            for (got, want) in mean.iter().zip(step.mean) {
+                each(*got, want);
+            }
+        }
+        true
     }
 
     /// An int8 blob in flash, `policy.act` over the golden observations: every output must
@@ -164,23 +175,14 @@ mod image {
         let Ok(policy) = blob.policy() else {
             return r.check(name, false);
         };
-        let mut state = policy.initial_state();
         let (mut identical, mut total, mut max_diff) = (0u32, 0u32, 0.0f64);
-        for i in 0..expected.steps() {
-            let Some(step) = expected.step(i) else {
-                return r.check(name, false);
-            };
-            let Some(obs) = Observation::from_values(step.obs()) else {
-                return r.check(name, false);
-            };
-            let Some(mean) = policy.act(&obs, &mut state) else {
-                return r.check(name, false);
-            };
-            for (got, want) in mean.iter().zip(step.mean) {
-                total += 1;
-                identical += u32::from(f64::from(*got).to_bits() == want.to_bits());
-                max_diff = max_diff.max((f64::from(*got) - want).abs());
-            }
+        let replayed = replay(&policy, &expected, |got, want| {
+            total += 1;
+            identical += u32::from(f64::from(got).to_bits() == want.to_bits());
+            max_diff = max_diff.max((f64::from(got) - want).abs());
+        });
+        if !replayed {
+            return r.check(name, false);
         }
         hprintln!(
             "  row {} int8: {} payload bytes in flash, {} of {} outputs bit-identical to the host (max |diff| {:e})",
