@@ -64,3 +64,40 @@ fn check(name: &str, config_name: &str, recorded_lap_s: f64) {
         "{name}: best lap {lap} s, recorded {recorded_lap_s} s"
     );
 }
+
+/// `policies/stage2_G_student.blob` is the imitation warm start of `configs/stage2_G.toml`
+/// (provenance: that config's hash, seed and name, 0 PPO iterations), and races the shipped
+/// opponent exactly as `policies/stage2_G_student/eval.json` records.
+#[test]
+fn the_stage2_student_is_its_configs_warm_start_and_races_as_recorded() {
+    let raw = std::fs::read(root().join("policies/stage2_G_student.blob")).unwrap();
+    let config = TrainConfig::load(&root().join("host-trainer/configs/stage2_G.toml")).unwrap();
+    let bytes = AlignedBytes::new(&raw);
+    let blob = Blob::parse(bytes.as_bytes()).unwrap();
+    let p = &blob.header().provenance;
+    assert_eq!(p.config_hash, config.hash(), "made with another config");
+    assert_eq!(p.seed, config.run.seed);
+    assert_eq!(p.iterations, 0, "the warm start, before any PPO iteration");
+    assert_eq!(p.name.as_str(), config.run.name);
+    assert_eq!(p.preset.as_str(), config.env.preset);
+
+    let recorded: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join("policies/stage2_G_student/eval.json")).unwrap(),
+    )
+    .unwrap();
+    let ego = PilotSpec::from_blob("student", &raw).unwrap();
+    let opponent_raw = std::fs::read(root().join("policies/stage1_guarded.blob")).unwrap();
+    let opponent = PilotSpec::from_blob("opponent", &opponent_raw).unwrap();
+    let eval = EvalConfig {
+        preset: Preset::paper(),
+        episodes: recorded["episodes"].as_u64().unwrap() as u32,
+        seconds: recorded["episode_seconds"].as_f64().unwrap() as f32,
+        seed: recorded["seed"].as_u64().unwrap(),
+        spawn: None,
+    };
+    let r = report(&ego, Some(&opponent), &eval);
+    println!("{}", r.table());
+    assert_eq!(r.gates_passed, recorded["gates_passed"].as_u64().unwrap());
+    assert_eq!(r.crashes, recorded["crashes"].as_u64().unwrap());
+    assert_eq!(r.overtakes, recorded["overtakes"].as_u64().unwrap());
+}
