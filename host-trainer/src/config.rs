@@ -38,7 +38,8 @@ pub struct RaceSection {
     /// The opponent's blob, relative to the working directory (the repository root for the
     /// commands in the docs). Paper: the stage-1 policy (row A).
     pub opponent: String,
-    /// "dense" (eq. 6; rows B, C, E-G) or "sparse" (eq. 7; row D).
+    /// "dense" (eq. 6; rows B, C, E-G), "sparse" (eq. 7; row D), or "lead" (not the paper's:
+    /// the lead in track progress, which eq. 6's body-frame measure can be gamed around).
     pub competition: crate::env::Competition,
     /// Weight of the competition reward (× dt like every term). Paper: 0.5.
     #[serde(default = "default_competition_weight")]

@@ -30,13 +30,13 @@ use firmware_core::blob::AlignedBytes;
 use firmware_core::math::Vec3;
 use firmware_core::nn::ACTION_DIM;
 use firmware_core::observation::ObservationSpec;
-use firmware_core::track::{Centerline, CrashRules, Track};
+use firmware_core::track::{CrashRules, Track};
 use firmware_core::vehicle::ActionMap;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use sitl::dynamics::Preset;
-use sitl::referee::SpawnMode;
+use sitl::referee::{SpawnMode, TrackProgress};
 use sitl::world::{Drone, World};
 
 /// Envs per rayon task.
@@ -146,6 +146,12 @@ pub enum Competition {
     Dense,
     /// `1` on a gate passed while ahead in gates (eq. 7; row D).
     Sparse,
+    /// `tanh(0.1 · lead)` every step, `lead` the ego's progress along the track minus the
+    /// opponent's (m, as the referee measures overtakes). Not in the paper: eq. 6 measures the
+    /// opponent along the ego's body x, which an ego can earn by facing away from the
+    /// opponent instead of racing (docs/TRAINING.md, s2-g3); this form pays only for being
+    /// ahead on the track.
+    Lead,
 }
 
 /// The opponent and the competition reward of a stage-2 environment.
@@ -266,6 +272,8 @@ struct Slot {
     opponent: Option<Controller<'static>>,
     previous_action: [f32; ACTION_DIM],
     steps: u32,
+    /// Each drone's centreline segment at its last spawn (for the `lead` reward).
+    spawn_segment: [u64; 2],
     rng: ChaCha8Rng,
     stats: EnvStats,
 }
@@ -274,7 +282,7 @@ struct Slot {
 #[derive(Clone, Debug)]
 pub struct TrainEnv {
     world: World,
-    line: Centerline,
+    progress: TrackProgress,
     spec: ObservationSpec,
     obs_dim: usize,
     map: ActionMap,
@@ -340,13 +348,13 @@ impl TrainEnv {
                 })
             }
         };
-        let line = Centerline::new(&world.track);
+        let progress = TrackProgress::new(&world.track);
         let max_steps = ((config.episode_s / world.dt_s).round() as u32).max(1);
         let n = config.num_envs;
         let obs_dim = config.observation.layout.dim();
         let mut env = Self {
             world,
-            line,
+            progress,
             spec: config.observation,
             obs_dim,
             map: ActionMap::PAPER,
@@ -372,10 +380,11 @@ impl TrainEnv {
                 opponent: env.race.as_ref().map(|r| r.opponent.clone()),
                 previous_action: [0.0; ACTION_DIM],
                 steps: 0,
+                spawn_segment: [0; 2],
                 rng,
                 stats: EnvStats::default(),
             };
-            respawn(&env.world, &env.line, &env.spawn_rule(), &mut slot);
+            respawn(&env.world, &env.progress, &env.spawn_rule(), &mut slot);
             slot.steps = steps;
             env.slots.push(slot);
         }
@@ -476,7 +485,7 @@ impl TrainEnv {
             competition: self.race.as_ref().map(|r| (r.competition, r.weight)),
         };
         let reward = &reward;
-        let line = &self.line;
+        let progress = &self.progress;
         self.slots
             .par_chunks_mut(CHUNK)
             .zip(self.observations.par_chunks_mut(CHUNK * obs_dim))
@@ -495,9 +504,9 @@ impl TrainEnv {
                         }
                     });
                     let (r, crashed, timed_out) =
-                        step_slot(world, map, reward, max_steps, slot, &a);
+                        step_slot(world, progress, map, reward, max_steps, slot, &a);
                     if crashed || timed_out {
-                        respawn(world, line, &rule, slot);
+                        respawn(world, progress, &rule, slot);
                     }
                     rew[i] = r;
                     done[i] = crashed || timed_out;
@@ -562,7 +571,7 @@ impl TrainEnv {
     pub fn respawn_all(&mut self) {
         let rule = self.spawn_rule();
         for slot in &mut self.slots {
-            respawn(&self.world, &self.line, &rule, slot);
+            respawn(&self.world, &self.progress, &rule, slot);
         }
         self.observe_all();
     }
@@ -613,7 +622,8 @@ struct SpawnRule {
 /// stage-1 spawn with probability `stage1_fraction`, otherwise `mode`'s, moving along its
 /// heading at a speed drawn from [0, `max_speed_mps`] when that is positive. The previous
 /// action zeroed.
-fn respawn(world: &World, line: &Centerline, rule: &SpawnRule, slot: &mut Slot) {
+fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut Slot) {
+    let line = progress.line();
     let stage1 =
         !rule.race && rule.stage1_fraction > 0.0 && slot.rng.random::<f32>() < rule.stage1_fraction;
     let mode = if stage1 { SpawnMode::Stage1 } else { rule.mode };
@@ -624,6 +634,10 @@ fn respawn(world: &World, line: &Centerline, rule: &SpawnRule, slot: &mut Slot) 
         spawn.state.velocity_mps = forward.scale(speed);
     }
     slot.drones = [Drone::spawned(spawn), Drone::spawned(opponent)];
+    slot.spawn_segment = slot
+        .drones
+        .each_ref()
+        .map(|d| progress.spawn_segment(d.progress.target));
     if let Some(c) = &mut slot.opponent {
         c.reset(opponent.target_gate);
     }
@@ -648,6 +662,7 @@ pub fn dense_competition(ego: &firmware_core::vehicle::VehicleState, opponent_m:
 /// Steps one env; returns (reward, crashed, timed out).
 fn step_slot(
     world: &World,
+    progress: &TrackProgress,
     map: &ActionMap,
     rewards: &Rewards,
     max_steps: u32,
@@ -705,6 +720,12 @@ fn step_slot(
                 } else {
                     0.0
                 }
+            }
+            Some((Competition::Lead, weight)) => {
+                let [se, so] = slot.spawn_segment;
+                let lead = progress.progress_m(se, ego.progress.gates_passed, ego.position_m())
+                    - progress.progress_m(so, opp.progress.gates_passed, opp.position_m());
+                f64::from(dt * weight * (0.1 * lead).tanh())
             }
         };
     }

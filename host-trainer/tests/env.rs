@@ -323,3 +323,65 @@ fn a_bad_opponent_is_refused() {
     let e = TrainEnv::with_race(c).unwrap_err();
     assert!(e.to_string().contains("opponent"), "{e}");
 }
+
+/// The `lead` competition term against the referee's own lead (an independent path through
+/// `sitl::referee::Referee`): `0.5 dt tanh(0.1 lead)`, negative at the stage-2 spawn where
+/// the opponent starts 1 m ahead, and the same whichever way the ego faces.
+#[test]
+fn the_lead_competition_term_is_the_referees_lead() {
+    let mut env = TrainEnv::with_race(race_config(1, Competition::Lead)).unwrap();
+    let world = World::figure_eight(Preset::paper(), CrashRules::STAGE2);
+    let spec = ObservationSpec::paper(ObservationLayout::FullOpponent30);
+    let gate = (0..6)
+        .find(|&k| {
+            let s = stage2_spawn(&world.track, k);
+            let d = [Drone::spawned(s[0]), Drone::spawned(s[1])];
+            spec.observe(
+                &d[0].body.state,
+                &world.track.gate(d[0].progress.target),
+                &[0.0; 4],
+                Some(&d[1].body.state),
+            )
+            .unwrap()
+            .as_slice()
+                == env.observations()
+        })
+        .expect("the first observation is a stage-2 spawn's");
+    let s = stage2_spawn(&world.track, gate);
+    let mut d = [Drone::spawned(s[0]), Drone::spawned(s[1])];
+    let mut referee = sitl::referee::Referee::new(&world.track, world.dt_s);
+    referee.restart(&d);
+    let raw = opponent_blob();
+    let bytes = AlignedBytes::new(&raw);
+    let mut opponent = Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).unwrap();
+    opponent.reset(gate);
+    let a = [0.6f32, 0.5, 0.55, 0.45];
+    let opp_cmd = opponent
+        .step(&d[1].body.state, Some(&d[0].body.state))
+        .command;
+    world.step(&mut d, &[ActionMap::PAPER.command(&a), opp_cmd]);
+    env.step(&a).unwrap();
+    let t = env.take_stats().terms;
+    let lead = referee.lead_m(&d).unwrap();
+    let expected = 0.02 * 0.5 * f64::from((0.1 * lead).tanh());
+    assert!(lead < -0.3 && lead > -1.1, "lead {lead} m");
+    assert!(
+        (t.competition - expected).abs() < 1e-9,
+        "{t:?} vs {expected}"
+    );
+    assert!(t.competition < 0.0);
+    // Facing away from the opponent changes eq. 6's term, not the lead.
+    let mut turned = d;
+    turned[0].body.state.attitude = firmware_core::math::Quat::from_axis_angle(
+        firmware_core::math::Vec3::new(0.0, 0.0, 1.0),
+        3.0,
+    ) * d[0].body.state.attitude;
+    assert_eq!(referee.lead_m(&turned), Some(lead));
+    let eq6 = |d: &[Drone; 2]| dense_competition(&d[0].body.state, d[1].position_m());
+    assert!(
+        eq6(&d) < 0.0 && eq6(&turned) > 0.0,
+        "{} {}",
+        eq6(&d),
+        eq6(&turned)
+    );
+}

@@ -127,13 +127,55 @@ enum Lead {
     Ahead { since_s: f32, sustained: bool },
 }
 
+/// Progress along the track's centreline (m), counted on across laps: what the referee
+/// measures leads and overtakes with (and the training env's `lead` competition reward).
+#[derive(Clone, Debug)]
+pub struct TrackProgress {
+    line: Centerline,
+    arc: ArcLength,
+    segments: u64,
+}
+
+impl TrackProgress {
+    /// The measure for `track`.
+    pub fn new(track: &Track<'_>) -> Self {
+        let line = Centerline::new(track);
+        Self {
+            arc: ArcLength::new(&line),
+            segments: line.segments().max(1) as u64,
+            line,
+        }
+    }
+
+    /// The centreline progress is measured along.
+    pub fn line(&self) -> &Centerline {
+        &self.line
+    }
+
+    /// The absolute index of the centreline segment a drone (re)spawned towards
+    /// `target_gate` flies: the segment that ends at its target, offset by a lap so it never
+    /// goes below 0.
+    pub fn spawn_segment(&self, target_gate: usize) -> u64 {
+        target_gate as u64 + self.segments - 1
+    }
+
+    /// Progress (m) of a drone at `position_m` that spawned on `spawn_segment` and has passed
+    /// `gates_passed` gates since: laps·length + the arc length of its nearest point on the
+    /// segment it flies.
+    pub fn progress_m(&self, spawn_segment: u64, gates_passed: u32, position_m: Vec3) -> f32 {
+        let seg = spawn_segment + u64::from(gates_passed);
+        let k = (seg % self.segments) as usize;
+        let s = self.line.nearest_on_segment(k, position_m);
+        let laps = (seg / self.segments) as f32;
+        laps * self.arc.length_m() + self.arc.along_segment(k, s - k as f32)
+    }
+}
+
 /// The referee's bookkeeping for one episode. Feed it every step with [`Referee::score`];
 /// call [`Referee::restart`] after every (re)spawn.
 #[derive(Clone, Debug)]
 pub struct Referee {
-    line: Centerline,
-    arc: ArcLength,
-    segments: u64,
+    progress: TrackProgress,
     dt_s: f32,
     steps: u32,
     metrics: EpisodeMetrics,
@@ -148,11 +190,8 @@ pub struct Referee {
 impl Referee {
     /// A referee for `track` at control period `dt_s` (s).
     pub fn new(track: &Track<'_>, dt_s: f32) -> Self {
-        let line = Centerline::new(track);
         Self {
-            arc: ArcLength::new(&line),
-            segments: line.segments().max(1) as u64,
-            line,
+            progress: TrackProgress::new(track),
             dt_s,
             steps: 0,
             metrics: EpisodeMetrics::default(),
@@ -164,7 +203,7 @@ impl Referee {
 
     /// The racing line progress is measured on.
     pub fn centerline(&self) -> &Centerline {
-        &self.line
+        self.progress.line()
     }
 
     /// Elapsed simulated time (s).
@@ -177,8 +216,7 @@ impl Referee {
     /// overtake).
     pub fn restart(&mut self, drones: &[Drone]) {
         for (seg, d) in self.spawn_segment.iter_mut().zip(drones) {
-            // The segment that ends at the target; offset by a lap so it never goes below 0.
-            *seg = d.progress.target as u64 + self.segments - 1;
+            *seg = self.progress.spawn_segment(d.progress.target);
         }
         self.lap_start_step = None;
         self.lead = match self.lead_m(drones) {
@@ -194,11 +232,11 @@ impl Referee {
     /// point of the centreline segment it flies.
     pub fn progress_m(&self, drones: &[Drone], i: usize) -> Option<f32> {
         let d = drones.get(i)?;
-        let seg = self.spawn_segment.get(i)? + u64::from(d.progress.gates_passed);
-        let k = (seg % self.segments) as usize;
-        let s = self.line.nearest_on_segment(k, d.position_m());
-        let laps = (seg / self.segments) as f32;
-        Some(laps * self.arc.length_m() + self.arc.along_segment(k, s - k as f32))
+        Some(self.progress.progress_m(
+            *self.spawn_segment.get(i)?,
+            d.progress.gates_passed,
+            d.position_m(),
+        ))
     }
 
     /// The ego's lead over the opponent (m); `None` without an opponent.
