@@ -105,14 +105,7 @@ fn dequantised_weights_are_within_half_a_step_of_the_originals() {
 fn int8_inference_equals_f32_inference_on_the_dequantised_weights() {
     // What differs is only the int16 rounding of each layer input (1/32767 of its largest
     // value), so the two policies agree to ~1e-4 over a 200-step recurrent sequence.
-    for row in [
-        TableRow::A,
-        TableRow::B,
-        TableRow::C,
-        TableRow::E,
-        TableRow::F,
-        TableRow::G,
-    ] {
+    for row in synthetic::GOLDEN_ROWS {
         let bytes = AlignedBytes::new(&synthetic::blob_i8(row, 4).expect("encode"));
         let blob = Blob::parse(bytes.as_bytes()).expect("parse");
         let deq = blob.dequantized();
