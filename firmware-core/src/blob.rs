@@ -326,38 +326,27 @@ fn as_words(bytes: &[u8]) -> Result<&[u32], BlobError> {
     Ok(unsafe { core::slice::from_raw_parts(bytes.as_ptr().cast::<u32>(), bytes.len() / 4) })
 }
 
-/// Checks an int8 payload's contents tensor by tensor (its size is already checked): finite
-/// biases, finite non-negative scales, zero row padding.
+/// Checks an int8 payload's contents tensor by tensor, read as inference reads them
+/// ([`WeightReader`]): finite biases, finite non-negative scales, zero row padding.
 fn validate_i8(arch: &Architecture, words: &[u32]) -> Result<(), BlobError> {
-    let mut at = 0usize;
-    let mut take = |n: usize| -> Result<(usize, &[u32]), BlobError> {
-        let start = at;
-        let slice = words
-            .get(start..start + n)
-            .ok_or(BlobError::PayloadLengthMismatch {
-                expected_bytes: (start + n) * 4,
-                actual_bytes: words.len() * 4,
-            })?;
-        at += n;
-        Ok((start, slice))
-    };
+    let mut r = WeightReader::new_i8(words);
     for t in arch.tensors() {
+        let start = r.position();
         if t.cols == 0 {
-            let (start, bias) = take(t.rows)?;
-            if let Some(i) = bias.iter().position(|w| !f32::from_bits(*w).is_finite()) {
+            let bias = r.take(t.rows)?;
+            if let Some(i) = bias.iter().position(|b| !b.is_finite()) {
                 return Err(BlobError::NonFiniteWeight { index: start + i });
             }
             continue;
         }
-        let (start, scales) = take(t.rows)?;
-        if let Some(i) = scales.iter().position(|w| {
-            let s = f32::from_bits(*w);
-            !s.is_finite() || s.is_sign_negative()
-        }) {
+        let (scales, q) = r.take_i8(t.rows, t.cols)?;
+        if let Some(i) = scales
+            .iter()
+            .position(|s| !s.is_finite() || s.is_sign_negative())
+        {
             return Err(BlobError::InvalidScale { word: start + i });
         }
         let row_words = crate::nn::i8_row_bytes(t.cols) / 4;
-        let (_, q) = take(t.rows * row_words)?;
         let pad = row_words * 4 - t.cols;
         if pad > 0 {
             let last_word_of_rows = q.iter().skip(row_words - 1).step_by(row_words);
@@ -368,7 +357,7 @@ fn validate_i8(arch: &Architecture, words: &[u32]) -> Result<(), BlobError> {
             }
         }
     }
-    Ok(())
+    r.finish()
 }
 
 impl<'w> Blob<'w> {
@@ -513,13 +502,17 @@ impl<'w> Blob<'w> {
         self.len == 0
     }
 
-    /// The policy network viewing this blob's weights.
-    pub fn policy(&self) -> Result<Policy<'w>, BlobError> {
-        let reader = match self.header.dtype {
+    /// A reader at the start of the payload, in the blob's dtype.
+    fn reader(&self) -> WeightReader<'w> {
+        match self.header.dtype {
             WeightDtype::F32 => WeightReader::new(crate::nn::words_f32(self.payload)),
             WeightDtype::I8 => WeightReader::new_i8(self.payload),
-        };
-        Policy::from_reader(&self.header.architecture, reader)
+        }
+    }
+
+    /// The policy network viewing this blob's weights.
+    pub fn policy(&self) -> Result<Policy<'w>, BlobError> {
+        Policy::from_reader(&self.header.architecture, self.reader())
     }
 }
 
@@ -664,22 +657,18 @@ mod encode_std {
             }
             let arch = &self.header.architecture;
             let mut out = Vec::with_capacity(arch.param_count());
-            let mut words = self.payload;
+            // `parse` checked the payload's size against these tensors: every take succeeds.
+            let mut r = self.reader();
             for t in arch.tensors() {
-                let (scales, tail) = words.split_at(if t.cols == 0 { 0 } else { t.rows });
-                words = tail;
                 if t.cols == 0 {
-                    let (bias, tail) = words.split_at(t.rows);
-                    words = tail;
-                    out.extend(bias.iter().map(|w| f32::from_bits(*w)));
+                    out.extend_from_slice(r.take(t.rows).unwrap_or_default());
                     continue;
                 }
+                let (scales, q) = r.take_i8(t.rows, t.cols).unwrap_or_default();
                 let row_words = crate::nn::i8_row_bytes(t.cols) / 4;
-                let (q, tail) = words.split_at(t.rows * row_words);
-                words = tail;
                 for (row, s) in q.chunks_exact(row_words).zip(scales) {
                     let bytes = row.iter().flat_map(|w| w.to_le_bytes()).take(t.cols);
-                    out.extend(bytes.map(|b| f32::from(b as i8) * f32::from_bits(*s)));
+                    out.extend(bytes.map(|b| f32::from(b as i8) * s));
                 }
             }
             out

@@ -104,6 +104,11 @@ impl<'w> WeightReader<'w> {
         self.words(n).map(words_f32)
     }
 
+    /// Words of the payload read so far (where the next tensor starts).
+    pub fn position(&self) -> usize {
+        self.taken
+    }
+
     /// The next `[rows][cols]` weight matrix, in the payload's storage.
     pub fn take_matrix(&mut self, rows: usize, cols: usize) -> Result<Matrix<'w>, BlobError> {
         match self.storage {
@@ -112,11 +117,22 @@ impl<'w> WeightReader<'w> {
                 if cols > MAX_I8_COLS {
                     return Err(BlobError::UnsupportedArchitecture);
                 }
-                let scale = self.take(rows)?;
-                let q = self.words(rows * i8_row_bytes(cols) / 4)?;
+                let (scale, q) = self.take_i8(rows, cols)?;
                 Ok(Matrix::I8 { scale, q })
             }
         }
+    }
+
+    /// The next int8 matrix `[rows][cols]` as stored: its `rows` f32 scales, then its rows
+    /// of int8 values, each padded to [`i8_row_bytes`] (the layout of `crate::blob`).
+    pub fn take_i8(
+        &mut self,
+        rows: usize,
+        cols: usize,
+    ) -> Result<(&'w [f32], &'w [u32]), BlobError> {
+        let scale = self.take(rows)?;
+        let q = self.words(rows * i8_row_bytes(cols) / 4)?;
+        Ok((scale, q))
     }
 
     /// Checks that every value was consumed.
@@ -391,9 +407,9 @@ impl<'w, const IN: usize, const H: usize> LstmCell<'w, IN, H> {
 
     /// Advances `state` by one input `x`.
     ///
-    /// Gate-major: the pre-activations of all four gates, `(W_ih x + W_hh h) + bias`, are
-    /// computed as two matrix-vector products (two sequential weight streams), then the
-    /// cell updates. On the host the gate-major form is 59 µs per G controller step against
+    /// Gate-major: the pre-activations of all four gates, `(W_ih x + W_hh h) + bias`, row
+    /// by row over both weight matrices (f32), or as two matrix-vector products (int8),
+    /// then the cell updates. On the host the gate-major form is 59 µs per G controller step against
     /// 84 µs for a unit-by-unit loop that needs only H values of scratch (same session); the
     /// 4H-value buffer (2 KB at H = 128) fits the RAM budget. Kept out of line so its
     /// scratch and the MLP head's never share a stack frame.
@@ -686,11 +702,11 @@ impl<'w, const IN: usize, const H: usize, const DEEP: usize, M: Head<'w, H>>
     /// Bytes of activations kept on the stack by one step: the larger of the LSTM cell's gate
     /// pre-activations and the head's activations (their frames do not overlap), plus the
     /// int8 kernels' quantised input ([`I8_SCRATCH_BYTES`], reserved for either dtype).
-    pub const SCRATCH_BYTES: usize = if 4 * H * 4 > M::SCRATCH_BYTES {
+    pub const SCRATCH_BYTES: usize = (if 4 * H * 4 > M::SCRATCH_BYTES {
         4 * H * 4
     } else {
         M::SCRATCH_BYTES
-    } + I8_SCRATCH_BYTES;
+    }) + I8_SCRATCH_BYTES;
 
     /// Takes the LSTM layers, then the head, from `r`.
     pub fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError> {

@@ -141,24 +141,20 @@ pub fn compare(
     let race = opponent.is_some();
     let world = config.world(race);
     let episode = config.episode(race);
-    let flights: Vec<(EpisodeMetrics, ActionError)> = (0..config.episodes)
+    let track: Track<'static> = world.track;
+    let flying = Controller::from_bytes(f32_bytes.as_bytes(), track)
+        .map_err(|e| QuantError(e.to_string()))?;
+    let int8_policy = Blob::parse(int8_bytes.as_bytes())
+        .and_then(|b| b.policy())
+        .map_err(|e| QuantError(e.to_string()))?;
+    let flights: Vec<(EpisodeMetrics, Shadow<'_>)> = (0..config.episodes)
         .into_par_iter()
         .map(|i| {
-            let track: Track<'static> = world.track;
-            let (Ok(flying), Ok(blob8)) = (
-                Controller::from_bytes(f32_bytes.as_bytes(), track),
-                Blob::parse(int8_bytes.as_bytes()),
-            ) else {
-                return (EpisodeMetrics::default(), ActionError::default());
-            };
-            let Ok(int8) = blob8.policy() else {
-                return (EpisodeMetrics::default(), ActionError::default());
-            };
             let mut shadow = Shadow {
-                state: int8.initial_state(),
-                f32_state: int8.initial_state(),
-                flying,
-                int8,
+                flying: flying.clone(),
+                int8: int8_policy,
+                state: int8_policy.initial_state(),
+                f32_state: int8_policy.initial_state(),
                 max: 0.0,
                 max_unclipped: 0.0,
                 sum: 0.0,
@@ -180,26 +176,18 @@ pub fn compare(
                 None => run_episode(&world, &mut shadow, None, &episode, u64::from(i), false),
             }
             .metrics;
-            let error = ActionError {
-                steps: shadow.steps,
-                max_abs: shadow.max,
-                mean_abs: shadow.sum,
-                max_abs_unclipped: shadow.max_unclipped,
-                episode_max_abs: vec![shadow.max],
-                replay_mismatches: shadow.replay_mismatches,
-            };
-            (metrics, error)
+            (metrics, shadow)
         })
         .collect();
     let mut action_error = ActionError::default();
     let mut sum = 0.0;
     for (_, e) in &flights {
         action_error.steps += e.steps;
-        action_error.max_abs = action_error.max_abs.max(e.max_abs);
-        action_error.max_abs_unclipped = action_error.max_abs_unclipped.max(e.max_abs_unclipped);
-        action_error.episode_max_abs.extend(&e.episode_max_abs);
+        action_error.max_abs = action_error.max_abs.max(e.max);
+        action_error.max_abs_unclipped = action_error.max_abs_unclipped.max(e.max_unclipped);
+        action_error.episode_max_abs.push(e.max);
         action_error.replay_mismatches += e.replay_mismatches;
-        sum += e.mean_abs;
+        sum += e.sum;
     }
     action_error.mean_abs = sum / (4 * action_error.steps.max(1)) as f64;
     let f32_spec = PilotSpec::from_blob("f32", f32_blob).map_err(QuantError)?;

@@ -99,11 +99,10 @@ fn parse_convert(args: &[&str]) -> Result<Command, String> {
     })
 }
 
-/// Writes `bytes` to `out` through a temporary file, so a partial file never has the name.
+/// Writes `bytes` to `out` through a temporary file (`sitl::files::write_atomically`), so a
+/// partial file never has the name.
 fn write_atomically(out: &std::path::Path, bytes: &[u8]) -> crate::error::Result<()> {
-    let tmp = out.with_extension("tmp");
-    std::fs::write(&tmp, bytes)
-        .and_then(|()| std::fs::rename(&tmp, out))
+    sitl::files::write_atomically(out, bytes)
         .map_err(|e| crate::error::Error::new(format!("writing {}: {e}", out.display())))
 }
 

@@ -241,25 +241,14 @@ pub fn verdict(r: &Row) -> String {
     format!("{name} {flash}; {ram}.")
 }
 
-/// The row-G blobs the F405 image holds, in order of preference (its build script's
-/// `SHIPPED_G`).
-pub const F405_SHIPPED_G: [&str; 2] = ["policies/stage2.blob", "policies/stage2_G_student.blob"];
+#[path = "../stm32f405-fit/policy_source.rs"]
+mod policy_source;
 
-/// The bytes of the F405 image's blob, made as its build script makes them: the first of
-/// [`F405_SHIPPED_G`] that exists (or row G's synthetic blob) in int8.
+/// The bytes of the F405 image's blob, made as its build script makes them (the same
+/// `policy_source` picks the blob), in int8, and what it is.
 pub fn f405_blob() -> Result<(Vec<u8>, String)> {
-    let root = workspace_root();
-    let shipped = F405_SHIPPED_G
-        .iter()
-        .find_map(|p| std::fs::read(root.join(p)).ok().map(|b| (b, p.to_string())));
-    let (source, what) = match shipped {
-        Some(found) => found,
-        None => (
-            synthetic::blob(TableRow::G, synthetic::golden_seed(TableRow::G))
-                .map_err(|e| Error::new(format!("encoding the synthetic G blob: {e}")))?,
-            "row G's synthetic weights (no shipped row-G blob)".to_string(),
-        ),
-    };
+    let (what, source) = policy_source::source_blob(&workspace_root())
+        .map_err(|e| Error::new(format!("encoding the synthetic G blob: {e}")))?;
     let bytes =
         convert_bytes(&source, WeightDtype::I8).map_err(|e| Error::new(format!("{what}: {e}")))?;
     Ok((bytes, what))
