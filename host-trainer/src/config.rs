@@ -81,6 +81,10 @@ pub struct WarmStart {
     /// directory. Absent: the baseline at `teacher_cruise_mps`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub teacher_blob: Option<String>,
+    /// A blob of the run's row whose actor the rounds start from (relative to the working
+    /// directory), to refine an earlier student; absent: the run's fresh initialisation.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub student: Option<String>,
     /// DAgger rounds; the teacher's share of the executed actions falls linearly from 1 to
     /// 0 over the first half.
     pub rounds: u32,
@@ -92,8 +96,16 @@ pub struct WarmStart {
     pub minibatch: usize,
     /// Most recent samples kept for the regression.
     pub max_samples: usize,
-    /// Adam learning rate of the regression.
+    /// Adam learning rate of the regression (round 1).
     pub learning_rate: f64,
+    /// The regression's learning rate in the last round: the rate falls geometrically from
+    /// `learning_rate` to this over the rounds. Absent: constant.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub learning_rate_final: Option<f64>,
+    /// The teacher's share of the executed actions in round 1 (it falls linearly to 0 at
+    /// the half-way round). 0 refines a student on its own states from the first round.
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub teacher_share_start: f64,
     /// σ of the noise on the student's executed actions (state diversity).
     pub student_noise_std: f32,
     /// PPO iterations after the warm start that train the critic only.
@@ -118,6 +130,41 @@ pub struct RunConfig {
     /// `eval_*` in the metrics). Default 10.
     #[serde(default = "default_eval_every")]
     pub eval_every: u32,
+    /// Races of the in-training evaluation when the config races an opponent (45 s each,
+    /// stage-2 spawns). Default 4.
+    #[serde(
+        default = "default_eval_races",
+        skip_serializing_if = "is_default_eval_races"
+    )]
+    pub eval_races: u32,
+    /// Seed of the in-training evaluation's spawns (race `i` uses stream `i`). Default 0;
+    /// with `keep_best`, pick seeds the final evaluation does not use.
+    #[serde(default, skip_serializing_if = "is_zero_u64")]
+    pub eval_seed: u64,
+    /// Export the evaluated actor the referee scored best (highest success rate, then the
+    /// lower crash rate, then the earlier iteration) instead of the last one. Default off.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub keep_best: bool,
+}
+
+fn default_eval_races() -> u32 {
+    4
+}
+
+fn is_default_eval_races(v: &u32) -> bool {
+    *v == default_eval_races()
+}
+
+fn is_zero_u64(v: &u64) -> bool {
+    *v == 0
+}
+
+fn one() -> f64 {
+    1.0
+}
+
+fn is_one(v: &f64) -> bool {
+    *v == 1.0
 }
 
 fn default_min_learning_rate() -> f64 {
@@ -233,6 +280,27 @@ impl core::fmt::Display for ConfigError {
 
 impl std::error::Error for ConfigError {}
 
+impl WarmStart {
+    /// The teacher's share β of the executed actions in round `round` (0-based):
+    /// `teacher_share_start`, falling linearly to 0 at the half-way round.
+    pub fn teacher_share(&self, round: u32) -> f64 {
+        let half = (self.rounds / 2).max(1);
+        (self.teacher_share_start * (1.0 - f64::from(round) / f64::from(half))).max(0.0)
+    }
+
+    /// The regression's learning rate in round `round` (0-based): `learning_rate`, falling
+    /// geometrically to `learning_rate_final` in the last round where that is set.
+    pub fn round_learning_rate(&self, round: u32) -> f64 {
+        match self.learning_rate_final {
+            Some(last) if self.rounds > 1 => {
+                let t = f64::from(round.min(self.rounds - 1)) / f64::from(self.rounds - 1);
+                self.learning_rate * (last / self.learning_rate).powf(t)
+            }
+            _ => self.learning_rate,
+        }
+    }
+}
+
 impl TrainConfig {
     /// Reads and validates the TOML file at `path`.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
@@ -260,6 +328,9 @@ impl TrainConfig {
         }
         if self.run.iterations == 0 || self.run.checkpoint_every == 0 || self.run.eval_every == 0 {
             return bad("run.iterations, checkpoint_every and eval_every must be positive".into());
+        }
+        if self.run.eval_races == 0 {
+            return bad("run.eval_races must be positive".into());
         }
         if sitl::dynamics::Preset::by_name(&self.env.preset).is_none() {
             return bad(format!(
@@ -324,6 +395,14 @@ impl TrainConfig {
                 return bad(
                     "warm_start.learning_rate and teacher_cruise_mps must be positive".into(),
                 );
+            }
+            if w.learning_rate_final
+                .is_some_and(|l| l.is_nan() || l <= 0.0)
+            {
+                return bad("warm_start.learning_rate_final must be positive".into());
+            }
+            if !(0.0..=1.0).contains(&w.teacher_share_start) {
+                return bad("warm_start.teacher_share_start must be in [0, 1]".into());
             }
         }
         if let Some(g) = &self.guard {
@@ -433,6 +512,33 @@ mod tests {
     }
 
     #[test]
+    fn warm_start_schedules() {
+        let text = include_str!("../configs/stage2_G.toml");
+        let mut warm = TrainConfig::parse(text).unwrap().warm_start.unwrap();
+        warm.rounds = 11;
+        warm.learning_rate = 1e-3;
+        warm.learning_rate_final = None;
+        warm.teacher_share_start = 1.0;
+        // The default: the teacher's share falls 1 -> 0 over the first half, the rate is flat.
+        let shares: Vec<f64> = (0..11).map(|r| warm.teacher_share(r)).collect();
+        assert_eq!(&shares[..3], &[1.0, 0.8, 0.6]);
+        assert!(shares[5..].iter().all(|s| *s == 0.0), "{shares:?}");
+        assert!((0..11).all(|r| warm.round_learning_rate(r) == 1e-3));
+        // A refinement: no teacher, the rate geometric from 1e-3 to 1e-5 (1e-4 half-way).
+        warm.teacher_share_start = 0.0;
+        warm.learning_rate_final = Some(1e-5);
+        assert!((0..11).all(|r| warm.teacher_share(r) == 0.0));
+        let rate = |r| warm.round_learning_rate(r);
+        assert!((rate(0) - 1e-3).abs() < 1e-12);
+        assert!((rate(5) - 1e-4).abs() < 1e-12);
+        assert!((rate(10) - 1e-5).abs() < 1e-12);
+        assert!(
+            (rate(99) - 1e-5).abs() < 1e-12,
+            "past the last round it stays at the final rate"
+        );
+    }
+
+    #[test]
     fn typos_and_bad_values_are_errors() {
         let typo = STAGE1.replace("entropy_coef", "entropy_cof");
         assert!(matches!(
@@ -442,6 +548,17 @@ mod tests {
         let bad = STAGE1.replace("preset = \"paper\"", "preset = \"moon\"");
         let e = TrainConfig::parse(&bad).unwrap_err().to_string();
         assert!(e.contains("moon"), "{e}");
+        let stage2 = include_str!("../configs/stage2_G.toml");
+        for bad in [
+            "learning_rate = 1e-3\nlearning_rate_final = -1.0",
+            "learning_rate = 1e-3\nteacher_share_start = 1.5",
+        ] {
+            let t = stage2.replacen("learning_rate = 1e-3", bad, 1);
+            assert!(
+                matches!(TrainConfig::parse(&t), Err(ConfigError::Invalid(_))),
+                "{bad}"
+            );
+        }
         let bad = STAGE1.replace("gamma = 0.99", "gamma = 1.5");
         assert!(matches!(
             TrainConfig::parse(&bad),

@@ -123,9 +123,8 @@ pub fn imitate(
     let mut labels = vec![0.0f32; n * ACTION_DIM];
     let mut executed = vec![0.0f32; n * ACTION_DIM];
     let mut rounds = Vec::new();
-    let half = (warm.rounds / 2).max(1);
     for round in 0..warm.rounds {
-        let beta = (1.0 - f64::from(round) / f64::from(half)).max(0.0);
+        let beta = warm.teacher_share(round);
         let payload = actor.payload();
         let policy = Policy::from_payload(arch, &payload)
             .map_err(|e| TrainError::Unsupported(format!("imitation: {e}")))?;
@@ -180,7 +179,7 @@ pub fn imitate(
                 sum += f64::from(values(loss.clone().inner()).first().copied().unwrap_or(0.0));
                 batches += 1.0;
                 let grads = GradientsParams::from_grads(loss.backward(), &actor);
-                actor = optim.step(warm.learning_rate, actor, grads);
+                actor = optim.step(warm.round_learning_rate(round), actor, grads);
             }
             mse = sum / f64::max(batches, 1.0);
         }
@@ -285,10 +284,9 @@ pub fn imitate_recurrent(
     let mut labels = vec![0.0f32; n * ACTION_DIM];
     let mut executed = vec![0.0f32; n * ACTION_DIM];
     let mut rounds = Vec::new();
-    let half = (warm.rounds / 2).max(1);
     let valid = device.clone().without_autodiff();
     for round in 0..warm.rounds {
-        let beta = (1.0 - f64::from(round) / f64::from(half)).max(0.0);
+        let beta = warm.teacher_share(round);
         let payload = actor.net.payload();
         let policy = Policy::from_payload(arch, &payload)
             .map_err(|e| TrainError::Unsupported(format!("imitation: {e}")))?;
@@ -445,7 +443,7 @@ pub fn imitate_recurrent(
                 };
                 sum += value;
                 count += 1.0;
-                actor = optim.step(warm.learning_rate, actor, grads);
+                actor = optim.step(warm.round_learning_rate(round), actor, grads);
             }
             mse = sum / f64::max(count, 1.0);
             if epoch == 0 {

@@ -167,13 +167,22 @@ fn main() -> ExitCode {
                 s.wall_s / 60.0,
                 m.samples
             );
+            let m = match &s.best {
+                Some(b) => {
+                    println!(
+                        "exported the actor of iteration {} (run.keep_best: the referee's best)",
+                        b.iteration
+                    );
+                    b
+                }
+                None => m,
+            };
             if let Some(sr) = m.eval_success_rate {
                 let what = match &cfg.race {
                     None => "45 s from the stage-1 spawn".to_string(),
                     Some(r) => format!(
-                        "{} races of 45 s against {}",
-                        host_trainer::train::EVAL_RACES,
-                        r.opponent
+                        "{} races of 45 s against {}, seed {}",
+                        cfg.run.eval_races, r.opponent, cfg.run.eval_seed
                     ),
                 };
                 let overtakes = match (m.eval_overtakes, m.eval_sustained_overtakes) {

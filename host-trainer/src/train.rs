@@ -169,7 +169,7 @@ pub struct IterationMetrics {
     #[serde(default)]
     pub skipped_minibatches: u32,
     /// Referee, deterministic policy, 45 s from the stage-1 spawn (a time trial) or
-    /// [`EVAL_RACES`] 45 s races from stage-2 spawns (a race): success rate.
+    /// `run.eval_races` 45 s races from stage-2 spawns (a race): success rate.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub eval_success_rate: Option<f64>,
     /// Referee: crashes per second.
@@ -221,6 +221,40 @@ pub struct RunSummary {
     pub blob: Option<PathBuf>,
     /// The last referee evaluation.
     pub last: IterationMetrics,
+    /// With `run.keep_best`: the metrics of the iteration whose actor was exported.
+    pub best: Option<IterationMetrics>,
+}
+
+/// Whether the referee scored evaluation `a` better than `b` (`run.keep_best`): the higher
+/// success rate, then the lower crash rate; an exact tie keeps the earlier (`b`).
+pub fn referee_prefers(a: &IterationMetrics, b: &IterationMetrics) -> bool {
+    let key = |m: &IterationMetrics| {
+        (
+            m.eval_success_rate.unwrap_or(f64::NEG_INFINITY),
+            -m.eval_crash_rate.unwrap_or(f64::INFINITY),
+        )
+    };
+    let (ka, kb) = (key(a), key(b));
+    ka.0 > kb.0 || (ka.0 == kb.0 && ka.1 > kb.1)
+}
+
+/// The best-scored evaluation of `history` (`run.keep_best`).
+fn best_evaluation(history: &[IterationMetrics]) -> Option<&IterationMetrics> {
+    history
+        .iter()
+        .filter(|m| m.eval_success_rate.is_some())
+        .fold(None, |best, m| match best {
+            Some(b) if !referee_prefers(m, b) => Some(b),
+            _ => Some(m),
+        })
+}
+
+/// Where `run.keep_best` keeps the actor of an evaluated iteration (never overwritten, so a
+/// resume finds the best of the metrics it kept).
+fn best_candidate_path(paths: &Paths, iteration: u32, ext: &str) -> PathBuf {
+    paths
+        .checkpoints
+        .join(format!("best_iter_{iteration:06}.{ext}"))
 }
 
 fn rng_state(r: &ChaCha8Rng) -> String {
@@ -357,13 +391,10 @@ pub fn actor_blob<A: PolicyNet>(
         .map_err(|e| TrainError::Export(format!("blob export failed: {e:?}")))
 }
 
-/// Races the in-training evaluation flies: the stage-2 spawn is drawn per race.
-pub const EVAL_RACES: u32 = 4;
-
 /// The referee's verdict on the deterministic policy. A time trial: one 45 s episode from the
 /// stage-1 spawn (the evaluation of issue "stage1"; the fixed spawn and the deterministic
-/// policy make every such episode identical, so one is enough). A race: [`EVAL_RACES`] 45 s
-/// races against the config's opponent from stage-2 spawns (seeds 0..).
+/// policy make every such episode identical, so one is enough). A race: `run.eval_races`
+/// 45 s races against the config's opponent from stage-2 spawns (seed `run.eval_seed`).
 fn referee_eval(blob: &[u8], preset: Preset, config: &TrainConfig) -> Option<Report> {
     let spec = PilotSpec::from_blob("training", blob).ok()?;
     let opponent = match &config.race {
@@ -372,9 +403,13 @@ fn referee_eval(blob: &[u8], preset: Preset, config: &TrainConfig) -> Option<Rep
     };
     let eval = EvalConfig {
         preset,
-        episodes: if opponent.is_some() { EVAL_RACES } else { 1 },
+        episodes: if opponent.is_some() {
+            config.run.eval_races
+        } else {
+            1
+        },
         seconds: 45.0,
-        seed: 0,
+        seed: config.run.eval_seed,
         spawn: Some(if opponent.is_some() {
             SpawnMode::Stage2
         } else {
@@ -1041,6 +1076,16 @@ fn run_networks<A: Imitate, C: ValueNet>(
             std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
             save_checkpoint(&paths, &state, config)?;
         } else if let Some(warm) = &config.warm_start {
+            if let Some(path) = &warm.student {
+                let actor = actor_from_blob(Path::new(path), &arch, config, &device)?;
+                state.learner = Learner::new(
+                    actor,
+                    state.learner.critic.clone(),
+                    state.learner.learning_rate,
+                    device.clone(),
+                );
+                println!("the warm start refines the student {path}");
+            }
             warm_start(
                 &mut state,
                 config,
@@ -1217,6 +1262,24 @@ fn run_networks<A: Imitate, C: ValueNet>(
                     m.eval_sustained_overtakes = Some(r.sustained_overtakes);
                 }
             }
+            if config.run.keep_best
+                && m.eval_success_rate.is_some()
+                && best_evaluation(&state.history).is_none_or(|b| referee_prefers(&m, b))
+            {
+                // Written before the metrics line that makes it the best, so a resume from
+                // any later checkpoint finds it.
+                std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
+                let p = best_candidate_path(&paths, state.iteration, "blob");
+                write_atomically(&p, &blob).map_err(io(&p))?;
+                let st = crate::rslrl::export_actor(
+                    &arch,
+                    &state.learner.actor.payload(),
+                    Some(&state.learner.actor.std()),
+                )
+                .map_err(|e| TrainError::Export(e.to_string()))?;
+                let p = best_candidate_path(&paths, state.iteration, "safetensors");
+                write_atomically(&p, &st).map_err(io(&p))?;
+            }
             let lap = m
                 .eval_best_lap_s
                 .map_or("DNF".to_string(), |l| format!("{l:.2} s"));
@@ -1256,16 +1319,32 @@ fn run_networks<A: Imitate, C: ValueNet>(
 
     write_curves(&paths, &config.run.name, &state.history)?;
     let mut blob_path = None;
+    let best = if config.run.keep_best {
+        best_evaluation(&state.history).cloned()
+    } else {
+        None
+    };
     if state.iteration >= total {
-        let blob = actor_blob(&state.learner.actor, config, state.iteration)?;
+        let (blob, st) = match &best {
+            Some(b) => {
+                let read = |ext| {
+                    let p = best_candidate_path(&paths, b.iteration, ext);
+                    std::fs::read(&p).map_err(io(&p))
+                };
+                (read("blob")?, read("safetensors")?)
+            }
+            None => (
+                actor_blob(&state.learner.actor, config, state.iteration)?,
+                crate::rslrl::export_actor(
+                    &arch,
+                    &state.learner.actor.payload(),
+                    Some(&state.learner.actor.std()),
+                )
+                .map_err(|e| TrainError::Export(e.to_string()))?,
+            ),
+        };
         let p = paths.out.join(format!("{}.blob", config.run.name));
         write_atomically(&p, &blob).map_err(io(&p))?;
-        let st = crate::rslrl::export_actor(
-            &arch,
-            &state.learner.actor.payload(),
-            Some(&state.learner.actor.std()),
-        )
-        .map_err(|e| TrainError::Export(e.to_string()))?;
         let sp = paths.out.join(format!("{}.safetensors", config.run.name));
         write_atomically(&sp, &st).map_err(io(&sp))?;
         blob_path = Some(p);
@@ -1275,12 +1354,38 @@ fn run_networks<A: Imitate, C: ValueNet>(
         wall_s: state.wall_s,
         blob: blob_path,
         last: state.history.last().cloned().unwrap_or_default(),
+        best,
     })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_referee_prefers_success_then_fewer_crashes_then_the_earlier() {
+        let eval = |iteration, success, crashes| IterationMetrics {
+            iteration,
+            eval_success_rate: Some(success),
+            eval_crash_rate: Some(crashes),
+            ..IterationMetrics::default()
+        };
+        let history = [
+            eval(5, 0.80, 0.10),
+            IterationMetrics {
+                iteration: 6,
+                ..IterationMetrics::default()
+            },
+            eval(10, 0.85, 0.20),
+            eval(15, 0.85, 0.10),
+            eval(20, 0.85, 0.10),
+            eval(25, 0.70, 0.00),
+        ];
+        assert_eq!(best_evaluation(&history).map(|m| m.iteration), Some(15));
+        assert!(referee_prefers(&history[2], &history[0]));
+        assert!(!referee_prefers(&history[4], &history[3]));
+        assert!(best_evaluation(&history[1..2]).is_none());
+    }
 
     /// stage1.toml with a small guard, and the shipped student as its actor.
     fn student_learner() -> (TrainConfig, Architecture, Learner) {

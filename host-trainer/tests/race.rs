@@ -167,6 +167,73 @@ fn a_row_g_race_trains_exports_and_resumes() {
     let _ = std::fs::remove_dir_all(&split);
 }
 
+/// `run.keep_best`: the exported blob is the actor of the evaluation the referee scored best
+/// (success rate, then crash rate, then the earlier iteration), not the last one, also when
+/// the run was stopped and resumed in between (a resume starts fresh episodes, so its later
+/// evaluations differ from an uninterrupted run's; the best is taken over its own metrics).
+#[test]
+fn keep_best_exports_the_referees_best_evaluation_across_a_resume() {
+    let mut c = config();
+    c.run.name = "smoke-race-best".into();
+    c.run.iterations = 3;
+    c.run.eval_every = 1;
+    c.run.keep_best = true;
+    c.run.eval_races = 2;
+    c.run.eval_seed = 3;
+    // Large fixed steps, so the evaluations differ from one iteration to the next.
+    c.ppo.learning_rate = 3e-3;
+    c.ppo.desired_kl = None;
+    let whole = tmp("best-whole");
+    let uninterrupted = run(&c, &options(whole.clone())).unwrap();
+    let split = tmp("best-split");
+    let mut first = options(split.clone());
+    first.stop_after = Some(2);
+    assert!(run(&c, &first).unwrap().blob.is_none());
+    let mut second = options(split.clone());
+    second.resume = true;
+    let resumed = run(&c, &second).unwrap();
+
+    let mut chosen = Vec::new();
+    for (dir, summary) in [(&whole, uninterrupted), (&split, resumed)] {
+        let metrics: Vec<IterationMetrics> = std::fs::read_to_string(dir.join("metrics.jsonl"))
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+        assert_eq!(metrics.len(), 3);
+        let score =
+            |m: &IterationMetrics| (m.eval_success_rate.unwrap(), -m.eval_crash_rate.unwrap());
+        let mut best = &metrics[0];
+        for m in &metrics[1..] {
+            if score(m) > score(best) {
+                best = m;
+            }
+        }
+        assert_eq!(
+            summary.best.as_ref().map(|m| m.iteration),
+            Some(best.iteration)
+        );
+        let exported = std::fs::read(summary.blob.unwrap()).unwrap();
+        let bytes = AlignedBytes::new(&exported);
+        let blob = Blob::parse(bytes.as_bytes()).unwrap();
+        assert_eq!(blob.header().provenance.iterations, best.iteration);
+        let candidate = dir
+            .join("checkpoints")
+            .join(format!("best_iter_{:06}.blob", best.iteration));
+        assert!(exported == std::fs::read(candidate).unwrap());
+        chosen.push((best.iteration, score(best)));
+    }
+    // The case this test is for: an earlier actor than the last is exported, and the
+    // resumed run's is one it evaluated before it was stopped (both runs share iterations 1
+    // and 2; the checkpoint it resumes from is iteration 2).
+    assert!(
+        chosen.iter().all(|(iteration, _)| *iteration < 3),
+        "the last iteration scored best ({chosen:?}): pick other eval seeds for this test"
+    );
+    let _ = std::fs::remove_dir_all(&whole);
+    let _ = std::fs::remove_dir_all(&split);
+}
+
 /// The recurrent warm start fits the stage-1 teacher: in every one of four small DAgger
 /// rounds in the race, the LSTM student's error against the teacher's labels falls from the
 /// round's first epoch to its last (each round's data is harder than the last's as the
@@ -188,12 +255,15 @@ fn a_recurrent_student_learns_from_the_stage1_teacher() {
     let warm = WarmStart {
         teacher_cruise_mps: 9.0,
         teacher_blob: Some(teacher),
+        student: None,
         rounds: 4,
         steps_per_env: 60,
         epochs: 3,
         minibatch: 160,
         max_samples: 100_000,
         learning_rate: 1e-3,
+        learning_rate_final: None,
+        teacher_share_start: 1.0,
         student_noise_std: 0.1,
         critic_iterations: 0,
     };
