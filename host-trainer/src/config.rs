@@ -110,6 +110,57 @@ pub struct WarmStart {
     pub student_noise_std: f32,
     /// PPO iterations after the warm start that train the critic only.
     pub critic_iterations: u32,
+    /// Further DAgger stages after these rounds, in order, each from the student the last
+    /// one made, with the student flying from its first round (`[[warm_start.refine]]`).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub refine: Vec<Refine>,
+}
+
+/// A refinement stage of the warm start: more DAgger rounds on the student's own states,
+/// with their own length, data and learning rate; the teacher, minibatch and action noise
+/// are the warm start's.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Refine {
+    /// DAgger rounds.
+    pub rounds: u32,
+    /// Env-steps per env per round (a round starts from fresh spawns).
+    pub steps_per_env: usize,
+    /// Passes over the kept data per round.
+    pub epochs: usize,
+    /// Most recent samples kept for the regression.
+    pub max_samples: usize,
+    /// Adam learning rate in the stage's first round.
+    pub learning_rate: f64,
+    /// The rate in its last round (geometric in between); absent: constant.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub learning_rate_final: Option<f64>,
+}
+
+impl WarmStart {
+    /// The warm start's stages in order: itself, then each `refine` stage as a warm start of
+    /// its own (the student flying from the first round).
+    pub fn stages(&self) -> Vec<WarmStart> {
+        let mut stages = vec![WarmStart {
+            refine: Vec::new(),
+            ..self.clone()
+        }];
+        for r in &self.refine {
+            stages.push(WarmStart {
+                rounds: r.rounds,
+                steps_per_env: r.steps_per_env,
+                epochs: r.epochs,
+                max_samples: r.max_samples,
+                learning_rate: r.learning_rate,
+                learning_rate_final: r.learning_rate_final,
+                teacher_share_start: 0.0,
+                student: None,
+                refine: Vec::new(),
+                ..self.clone()
+            });
+        }
+        stages
+    }
 }
 
 /// Name, seed, budget and bookkeeping of a run.
@@ -378,7 +429,7 @@ impl TrainConfig {
         if !(self.env.velocity_scale_mps.is_finite() && self.env.velocity_scale_mps > 0.0) {
             return bad("env.velocity_scale_mps must be positive".into());
         }
-        if let Some(w) = &self.warm_start {
+        for w in self.warm_start.iter().flat_map(WarmStart::stages) {
             if w.rounds == 0
                 || w.steps_per_env == 0
                 || w.epochs == 0
@@ -386,7 +437,8 @@ impl TrainConfig {
                 || w.max_samples == 0
             {
                 return bad(
-                    "warm_start.rounds, steps_per_env, epochs and minibatch must be positive"
+                    "warm_start.rounds, steps_per_env, epochs, minibatch and max_samples (and \
+                     every refine stage's) must be positive"
                         .into(),
                 );
             }
@@ -399,7 +451,10 @@ impl TrainConfig {
             if w.learning_rate_final
                 .is_some_and(|l| l.is_nan() || l <= 0.0)
             {
-                return bad("warm_start.learning_rate_final must be positive".into());
+                return bad(
+                    "warm_start.learning_rate_final (and every refine stage's) must be positive"
+                        .into(),
+                );
             }
             if !(0.0..=1.0).contains(&w.teacher_share_start) {
                 return bad("warm_start.teacher_share_start must be in [0, 1]".into());
@@ -539,6 +594,38 @@ mod tests {
     }
 
     #[test]
+    fn refine_stages_inherit_the_teacher_and_start_with_the_student_flying() {
+        let c = TrainConfig::parse(include_str!("../configs/stage2_B.toml")).unwrap();
+        let warm = c.warm_start.unwrap();
+        let stages = warm.stages();
+        assert_eq!(stages.len(), 3);
+        assert_eq!(
+            stages.iter().map(|s| s.rounds).collect::<Vec<_>>(),
+            [30, 12, 8]
+        );
+        assert_eq!(stages[0].teacher_share(0), 1.0);
+        for s in &stages[1..] {
+            assert_eq!(s.teacher_share(0), 0.0);
+            assert_eq!(s.teacher_blob, warm.teacher_blob);
+            assert_eq!(s.minibatch, warm.minibatch);
+            assert_eq!(s.student_noise_std, warm.student_noise_std);
+            assert!(s.refine.is_empty() && s.student.is_none());
+        }
+        assert_eq!(stages[2].steps_per_env, 750);
+        assert!((stages[2].round_learning_rate(7) - 3e-5).abs() < 1e-12);
+        // A bad refine stage is refused like a bad warm start.
+        let text = include_str!("../configs/stage2_B.toml").replacen(
+            "rounds = 8\nsteps_per_env = 750",
+            "rounds = 8\nsteps_per_env = 0",
+            1,
+        );
+        assert!(matches!(
+            TrainConfig::parse(&text),
+            Err(ConfigError::Invalid(_))
+        ));
+    }
+
+    #[test]
     fn typos_and_bad_values_are_errors() {
         let typo = STAGE1.replace("entropy_coef", "entropy_cof");
         assert!(matches!(
@@ -548,7 +635,7 @@ mod tests {
         let bad = STAGE1.replace("preset = \"paper\"", "preset = \"moon\"");
         let e = TrainConfig::parse(&bad).unwrap_err().to_string();
         assert!(e.contains("moon"), "{e}");
-        let stage2 = include_str!("../configs/stage2_G.toml");
+        let stage2 = include_str!("../configs/stage2_B.toml");
         for bad in [
             "learning_rate = 1e-3\nlearning_rate_final = -1.0",
             "learning_rate = 1e-3\nteacher_share_start = 1.5",

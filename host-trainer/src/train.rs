@@ -764,8 +764,9 @@ fn warm_start<A: PolicyNet, C: ValueNet>(
     paths: &Paths,
     device: &Device,
     progress: bool,
-    imitate: impl FnOnce(
+    imitate: impl Fn(
         A,
+        &crate::config::WarmStart,
         &mut dyn FnMut(&crate::imitation::ImitationRound),
     ) -> Result<(A, Vec<crate::imitation::ImitationRound>), TrainError>,
 ) -> Result<(), TrainError> {
@@ -774,26 +775,23 @@ fn warm_start<A: PolicyNet, C: ValueNet>(
         Some(p) => p.clone(),
         None => format!("the baseline at {} m/s", warm.teacher_cruise_mps),
     };
-    println!(
-        "imitation warm start: {} DAgger rounds of {teacher}",
-        warm.rounds
-    );
+    let rounds: u32 = warm.stages().iter().map(|s| s.rounds).sum();
+    println!("imitation warm start: {rounds} DAgger rounds of {teacher}");
     let bar = if progress {
-        ProgressBar::new(u64::from(warm.rounds))
+        ProgressBar::new(u64::from(rounds))
     } else {
         ProgressBar::hidden()
     };
     let log_path = paths.out.join("imitation.jsonl");
     let mut text = String::new();
-    let (actor, _) = imitate(state.learner.actor.clone(), &mut |r| {
-        bar.inc(1);
-        bar.set_message(format!("mse {:.4}", r.mse));
-        text.push_str(&serde_json::to_string(r).unwrap_or_default());
-        text.push('\n');
-        if r.round % 5 == 0 || r.round == warm.rounds {
+    let mut actor = state.learner.actor.clone();
+    // Rounds are numbered through the stages in the log.
+    let mut before = 0;
+    for (k, stage) in warm.stages().iter().enumerate() {
+        if k > 0 {
             let line = format!(
-                "round {:>3}  teacher {:.2}  {} samples  mse {:.4}  gates {:.2}/s  crashes {:.3}/s",
-                r.round, r.teacher_share, r.samples, r.mse, r.gates_per_s, r.crash_rate_per_s
+                "refine stage {k}: {} rounds of {} steps, the student flying",
+                stage.rounds, stage.steps_per_env
             );
             if progress {
                 bar.println(line);
@@ -801,7 +799,31 @@ fn warm_start<A: PolicyNet, C: ValueNet>(
                 println!("{line}");
             }
         }
-    })?;
+        let last = stage.rounds;
+        actor = imitate(actor, stage, &mut |r| {
+            let r = crate::imitation::ImitationRound {
+                round: before + r.round,
+                ..r.clone()
+            };
+            bar.inc(1);
+            bar.set_message(format!("mse {:.4}", r.mse));
+            text.push_str(&serde_json::to_string(&r).unwrap_or_default());
+            text.push('\n');
+            if r.round.is_multiple_of(5) || r.round == before + last {
+                let line = format!(
+                    "round {:>3}  teacher {:.2}  {} samples  mse {:.4}  gates {:.2}/s  crashes {:.3}/s",
+                    r.round, r.teacher_share, r.samples, r.mse, r.gates_per_s, r.crash_rate_per_s
+                );
+                if progress {
+                    bar.println(line);
+                } else {
+                    println!("{line}");
+                }
+            }
+        })?
+        .0;
+        before += last;
+    }
     bar.finish_and_clear();
     write_atomically(&log_path, text.as_bytes()).map_err(io(&log_path))?;
     let elapsed = started.elapsed().as_secs_f64();
@@ -1093,7 +1115,7 @@ fn run_networks<A: Imitate, C: ValueNet>(
                 &paths,
                 &device,
                 options.progress,
-                |actor, log| A::imitate(actor, &arch, config, warm, &device, log),
+                |actor, stage, log| A::imitate(actor, &arch, config, stage, &device, log),
             )?;
         }
     }

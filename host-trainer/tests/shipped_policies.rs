@@ -65,13 +65,115 @@ fn check(name: &str, config_name: &str, recorded_lap_s: f64) {
     );
 }
 
-/// `policies/stage2_G_student.blob` is the imitation warm start of `configs/stage2_G.toml`
-/// (provenance: that config's hash, seed and name, 0 PPO iterations), and races the shipped
-/// opponent exactly as `policies/stage2_G_student/eval.json` records.
+/// The stage-2 blobs: `policies/stage2.blob` (row G) and the ablations that are shipped,
+/// each with the config that made it and its directory (`metrics.jsonl`, `eval.json`).
+const SHIPPED_RACES: &[(&str, &str)] = &[
+    ("stage2", "stage2_G"),
+    ("stage2_B", "stage2_B"),
+    ("stage2_C", "stage2_C"),
+    ("stage2_D", "stage2_D"),
+    ("stage2_E", "stage2_E"),
+    ("stage2_F", "stage2_F"),
+];
+
+/// Every shipped stage-2 blob is its config's run (hash, seed, name, preset), its actor is
+/// the evaluation `run.keep_best` chose from the shipped metrics (the provenance's iteration
+/// is the one the referee scored best there), and it races the shipped opponent exactly as
+/// its `eval.json` records. `policies/stage2.blob` must exist; an ablation not yet trained
+/// is skipped.
+#[test]
+fn shipped_race_blobs_are_their_configs_best_evaluation_and_race_as_recorded() {
+    assert!(root().join("policies/stage2.blob").is_file());
+    for &(name, config_name) in SHIPPED_RACES {
+        let path = root().join(format!("policies/{name}.blob"));
+        if path.is_file() {
+            check_race(name, config_name);
+        }
+    }
+}
+
+fn check_race(name: &str, config_name: &str) {
+    let raw = std::fs::read(root().join(format!("policies/{name}.blob"))).unwrap();
+    let config =
+        TrainConfig::load(&root().join(format!("host-trainer/configs/{config_name}.toml")))
+            .unwrap();
+    let bytes = AlignedBytes::new(&raw);
+    let blob = Blob::parse(bytes.as_bytes()).unwrap();
+    let p = &blob.header().provenance;
+    assert_eq!(
+        p.config_hash,
+        config.hash(),
+        "{name}: made with another config"
+    );
+    assert_eq!(p.seed, config.run.seed);
+    assert_eq!(p.name.as_str(), config.run.name);
+    assert_eq!(p.preset.as_str(), config.env.preset);
+    assert!(
+        config.run.keep_best,
+        "{config_name}: the stage-2 runs keep the best"
+    );
+
+    let metrics: Vec<host_trainer::train::IterationMetrics> =
+        std::fs::read_to_string(root().join(format!("policies/{name}/metrics.jsonl")))
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+    assert_eq!(
+        metrics.last().map(|m| m.iteration),
+        Some(config.run.iterations),
+        "{name}: the run finished"
+    );
+    let best = metrics
+        .iter()
+        .filter(|m| m.eval_success_rate.is_some())
+        .fold(
+            None,
+            |b: Option<&host_trainer::train::IterationMetrics>, m| match b {
+                Some(b) if !host_trainer::train::referee_prefers(m, b) => Some(b),
+                _ => Some(m),
+            },
+        )
+        .unwrap();
+    assert_eq!(
+        p.iterations, best.iteration,
+        "{name}: not the best evaluation"
+    );
+
+    let recorded: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join(format!("policies/{name}/eval.json"))).unwrap(),
+    )
+    .unwrap();
+    let ego = PilotSpec::from_blob(name, &raw).unwrap();
+    let opponent_path = config.race.as_ref().unwrap().opponent.clone();
+    let opponent_raw = std::fs::read(root().join(opponent_path)).unwrap();
+    let opponent = PilotSpec::from_blob("opponent", &opponent_raw).unwrap();
+    let eval = EvalConfig {
+        preset: Preset::paper(),
+        episodes: recorded["episodes"].as_u64().unwrap() as u32,
+        seconds: recorded["episode_seconds"].as_f64().unwrap() as f32,
+        seed: recorded["seed"].as_u64().unwrap(),
+        spawn: None,
+    };
+    let r = report(&ego, Some(&opponent), &eval);
+    println!("{name}: {}", r.table());
+    assert_eq!(r.gates_passed, recorded["gates_passed"].as_u64().unwrap());
+    assert_eq!(r.crashes, recorded["crashes"].as_u64().unwrap());
+    assert_eq!(r.overtakes, recorded["overtakes"].as_u64().unwrap());
+    assert_eq!(
+        r.sustained_overtakes,
+        recorded["sustained_overtakes"].as_u64().unwrap()
+    );
+}
+
+/// `policies/stage2_G_student.blob` is the first warm-start stage of row G, made by the
+/// config in its directory (provenance: that config's hash, seed and name, 0 PPO
+/// iterations), and races the shipped opponent exactly as its `eval.json` records.
+/// `configs/stage2_G.toml` refines it into `policies/stage2.blob`.
 #[test]
 fn the_stage2_student_is_its_configs_warm_start_and_races_as_recorded() {
     let raw = std::fs::read(root().join("policies/stage2_G_student.blob")).unwrap();
-    let config = TrainConfig::load(&root().join("host-trainer/configs/stage2_G.toml")).unwrap();
+    let config = TrainConfig::load(&root().join("policies/stage2_G_student/config.toml")).unwrap();
     let bytes = AlignedBytes::new(&raw);
     let blob = Blob::parse(bytes.as_bytes()).unwrap();
     let p = &blob.header().provenance;
@@ -80,6 +182,11 @@ fn the_stage2_student_is_its_configs_warm_start_and_races_as_recorded() {
     assert_eq!(p.iterations, 0, "the warm start, before any PPO iteration");
     assert_eq!(p.name.as_str(), config.run.name);
     assert_eq!(p.preset.as_str(), config.env.preset);
+    let g = TrainConfig::load(&root().join("host-trainer/configs/stage2_G.toml")).unwrap();
+    assert_eq!(
+        g.warm_start.and_then(|w| w.student).as_deref(),
+        Some("policies/stage2_G_student.blob")
+    );
 
     let recorded: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(root().join("policies/stage2_G_student/eval.json")).unwrap(),

@@ -1,0 +1,93 @@
+#!/usr/bin/env python3
+"""Our Table 1 beside the paper's, from the referee's JSON reports.
+
+usage: python3 tools/table1.py [POLICIES_DIR]
+
+Reads POLICIES_DIR/stage1_guarded/eval.json for row A (a time trial from the stage-1
+spawn) and POLICIES_DIR/stage2/eval.json (row G) and POLICIES_DIR/stage2_{B..F}/eval.json
+(the ablations) for the races, each written by `sitl eval --json` (20 or more seeded 45 s
+episodes; the commands are in docs/RESULTS.md). Prints a Markdown table: every metric with
+its 95 % interval (Student t over episodes, as the referee computes it) and the paper's
+value beside it. A row whose report is missing is printed as "not trained". Standard
+library only.
+"""
+import json
+import os
+import sys
+
+# The paper's Table 1: success rate (passed/encountered), crash rate (/s), best lap (s),
+# sustained overtake rate (sustained/overtakes).
+PAPER = {
+    "A": ("0.975 (39/40)", "0.02", "6.92", "—"),
+    "B": ("0.517 (15/29)", "0.31", "DNF", "Fail"),
+    "C": ("0.621 (18/29)", "0.24", "DNF", "Fail"),
+    "D": ("0.588 (20/34)", "0.31", "DNF", "Fail"),
+    "E": ("0.571 (12/21)", "0.22", "DNF", "Fail"),
+    "F": ("0.535 (23/43)", "0.49", "DNF", "0.33 (2/6)"),
+    "G": ("0.857 (30/35)", "0.18", "7.65", "0.50 (4/8)"),
+}
+NAMES = {
+    "A": "(A) 2-layer MLP, 17 inputs, time trial",
+    "B": "(B) 2-layer MLP, 20 inputs",
+    "C": "(C) 4-layer MLP",
+    "D": "(D) 4-layer MLP, sparse r_comp",
+    "E": "(E) 1-layer LSTM + 4-layer MLP",
+    "F": "(F) 2-layer LSTM + 3-layer MLP",
+    "G": "(G) 2-layer LSTM + 4-layer MLP",
+}
+REPORTS = {"A": "stage1_guarded", "G": "stage2"}
+
+
+def interval(value, ci):
+    return f"{value:.3f} [{ci[0]:.3f}, {ci[1]:.3f}]"
+
+
+def row(letter, report):
+    if report is None:
+        return [NAMES[letter], "not trained", "", "", "", "", *PAPER[letter]]
+    lap = "DNF" if report["best_lap_s"] is None else f"{report['best_lap_s']:.2f}"
+    if letter == "A":
+        ours = "—"
+    elif report["overtakes"] == 0:
+        ours = "Fail"
+    else:
+        ours = (
+            f"{report['sustained_overtake_rate']:.2f} "
+            f"({report['sustained_overtakes']}/{report['overtakes']})"
+        )
+    return [
+        NAMES[letter],
+        f"{report['episodes']} × {report['episode_seconds']:.0f} s",
+        interval(report["success_rate"], report["success_rate_ci95"])
+        + f" ({report['gates_passed']}/{report['gates_encountered']})",
+        interval(report["crash_rate"], report["crash_rate_ci95"]),
+        lap,
+        ours,
+        *PAPER[letter],
+    ]
+
+
+def main():
+    root = sys.argv[1] if len(sys.argv) > 1 else "policies"
+    header = [
+        "policy",
+        "episodes",
+        "success [95 %]",
+        "crashes /s [95 %]",
+        "best lap (s)",
+        "sustained overtakes",
+        "paper: success",
+        "paper: crashes /s",
+        "paper: lap (s)",
+        "paper: sustained",
+    ]
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for letter in "ABCDEFG":
+        path = os.path.join(root, REPORTS.get(letter, f"stage2_{letter}"), "eval.json")
+        report = json.load(open(path)) if os.path.exists(path) else None
+        print("| " + " | ".join(row(letter, report)) + " |")
+
+
+if __name__ == "__main__":
+    main()
