@@ -266,6 +266,7 @@ fn a_recurrent_student_learns_from_the_stage1_teacher() {
         teacher_share_start: 1.0,
         student_noise_std: 0.1,
         critic_iterations: 0,
+        refine: Vec::new(),
     };
     let arch = firmware_core::policy::Architecture::table1(firmware_core::policy::TableRow::G);
     let device = Device::flex().autodiff();
