@@ -72,8 +72,9 @@ struct RaceArgs {
     /// stage1_imitation.blob, else the baseline).
     #[arg(long)]
     ego: Option<String>,
-    /// The opponent, or "none" for a time trial. Default: the shipped opponent
-    /// (policies/stage1.blob, else the baseline).
+    /// The opponent, or "none" for a time trial. Default: the shipped opponent (the first
+    /// of policies/stage1.blob and stage1_guarded.blob that is not the ego, else the
+    /// baseline).
     #[arg(long)]
     opponent: Option<String>,
     #[command(flatten)]
@@ -462,7 +463,14 @@ fn race(args: RaceArgs) -> Result<ExitCode, String> {
     let opponent_spec = match args.opponent.as_deref() {
         Some("none") => None,
         Some(o) => Some(o.to_string()),
-        None => Some(shipped(&["stage1.blob"], "baseline")),
+        // The stage-1 policy a stage-2 ego was trained against; never the ego itself.
+        None => {
+            let candidates: Vec<&str> = ["stage1.blob", "stage1_guarded.blob"]
+                .into_iter()
+                .filter(|n| !ego_spec.ends_with(n))
+                .collect();
+            Some(shipped(&candidates, "baseline"))
+        }
     };
     let ego = PilotSpec::load(&ego_spec, &preset).map_err(|e| format!("--ego: {e}"))?;
     let opponent = opponent_spec

@@ -8,7 +8,7 @@ use firmware_core::policy::TableRow;
 use firmware_core::synthetic;
 
 /// The row-G blobs the image holds, in order of preference: the stage-2 policy, then the
-/// imitation student of `configs/stage2_G.toml` (paths from the repository root).
+/// first warm-start stage of row G (paths from the repository root).
 pub const SHIPPED_G: [&str; 2] = ["policies/stage2.blob", "policies/stage2_G_student.blob"];
 
 /// The f32 blob the image is made from, and what it is: the first of [`SHIPPED_G`] under
