@@ -24,11 +24,12 @@ fn shipped_blobs_are_their_configs_and_fly_as_recorded() {
     }
 }
 
-fn check(name: &str, config_name: &str, recorded_lap_s: f64) {
+/// The blob `policies/{name}.blob` and the config at `config` (from the repository root),
+/// with the provenance checked against the config (hash, seed, name, preset); returns the
+/// bytes, the config and the provenance's iteration count.
+fn shipped_blob(name: &str, config: &str) -> (Vec<u8>, TrainConfig, u32) {
     let raw = std::fs::read(root().join(format!("policies/{name}.blob"))).unwrap();
-    let config =
-        TrainConfig::load(&root().join(format!("host-trainer/configs/{config_name}.toml")))
-            .unwrap();
+    let config = TrainConfig::load(&root().join(config)).unwrap();
     let bytes = AlignedBytes::new(&raw);
     let blob = Blob::parse(bytes.as_bytes()).unwrap();
     let p = &blob.header().provenance;
@@ -38,13 +39,48 @@ fn check(name: &str, config_name: &str, recorded_lap_s: f64) {
         "{name} was made with another config"
     );
     assert_eq!(p.seed, config.run.seed);
-    assert_eq!(p.iterations, config.run.iterations);
     assert_eq!(p.preset.as_str(), config.env.preset);
     assert_eq!(p.name.as_str(), config.run.name);
     assert_eq!(
         blob.header().observation.velocity_scale_mps,
         config.env.velocity_scale_mps
     );
+    let iterations = p.iterations;
+    (raw, config, iterations)
+}
+
+/// The blob `raw` races `opponent` (a path from the repository root) exactly as the
+/// referee's report `policies/{dir}/eval.json` records.
+fn races_as_recorded(name: &str, raw: &[u8], opponent: &str, dir: &str) {
+    let recorded: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join(format!("policies/{dir}/eval.json"))).unwrap(),
+    )
+    .unwrap();
+    let ego = PilotSpec::from_blob(name, raw).unwrap();
+    let opponent_raw = std::fs::read(root().join(opponent)).unwrap();
+    let opponent = PilotSpec::from_blob("opponent", &opponent_raw).unwrap();
+    let eval = EvalConfig {
+        preset: Preset::paper(),
+        episodes: recorded["episodes"].as_u64().unwrap() as u32,
+        seconds: recorded["episode_seconds"].as_f64().unwrap() as f32,
+        seed: recorded["seed"].as_u64().unwrap(),
+        spawn: None,
+    };
+    let r = report(&ego, Some(&opponent), &eval);
+    println!("{name}: {}", r.table());
+    assert_eq!(r.gates_passed, recorded["gates_passed"].as_u64().unwrap());
+    assert_eq!(r.crashes, recorded["crashes"].as_u64().unwrap());
+    assert_eq!(r.overtakes, recorded["overtakes"].as_u64().unwrap());
+    assert_eq!(
+        r.sustained_overtakes,
+        recorded["sustained_overtakes"].as_u64().unwrap()
+    );
+}
+
+fn check(name: &str, config_name: &str, recorded_lap_s: f64) {
+    let (raw, config, iterations) =
+        shipped_blob(name, &format!("host-trainer/configs/{config_name}.toml"));
+    assert_eq!(iterations, config.run.iterations);
 
     let spec = PilotSpec::from_blob(name, &raw).unwrap();
     let eval = EvalConfig {
@@ -93,26 +129,12 @@ fn shipped_race_blobs_are_their_configs_best_evaluation_and_race_as_recorded() {
 }
 
 fn check_race(name: &str, config_name: &str) {
-    let raw = std::fs::read(root().join(format!("policies/{name}.blob"))).unwrap();
-    let config =
-        TrainConfig::load(&root().join(format!("host-trainer/configs/{config_name}.toml")))
-            .unwrap();
-    let bytes = AlignedBytes::new(&raw);
-    let blob = Blob::parse(bytes.as_bytes()).unwrap();
-    let p = &blob.header().provenance;
-    assert_eq!(
-        p.config_hash,
-        config.hash(),
-        "{name}: made with another config"
-    );
-    assert_eq!(p.seed, config.run.seed);
-    assert_eq!(p.name.as_str(), config.run.name);
-    assert_eq!(p.preset.as_str(), config.env.preset);
+    let (raw, config, iterations) =
+        shipped_blob(name, &format!("host-trainer/configs/{config_name}.toml"));
     assert!(
         config.run.keep_best,
         "{config_name}: the stage-2 runs keep the best"
     );
-
     let metrics: Vec<host_trainer::train::IterationMetrics> =
         std::fs::read_to_string(root().join(format!("policies/{name}/metrics.jsonl")))
             .unwrap()
@@ -136,34 +158,11 @@ fn check_race(name: &str, config_name: &str) {
         )
         .unwrap();
     assert_eq!(
-        p.iterations, best.iteration,
+        iterations, best.iteration,
         "{name}: not the best evaluation"
     );
-
-    let recorded: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(root().join(format!("policies/{name}/eval.json"))).unwrap(),
-    )
-    .unwrap();
-    let ego = PilotSpec::from_blob(name, &raw).unwrap();
-    let opponent_path = config.race.as_ref().unwrap().opponent.clone();
-    let opponent_raw = std::fs::read(root().join(opponent_path)).unwrap();
-    let opponent = PilotSpec::from_blob("opponent", &opponent_raw).unwrap();
-    let eval = EvalConfig {
-        preset: Preset::paper(),
-        episodes: recorded["episodes"].as_u64().unwrap() as u32,
-        seconds: recorded["episode_seconds"].as_f64().unwrap() as f32,
-        seed: recorded["seed"].as_u64().unwrap(),
-        spawn: None,
-    };
-    let r = report(&ego, Some(&opponent), &eval);
-    println!("{name}: {}", r.table());
-    assert_eq!(r.gates_passed, recorded["gates_passed"].as_u64().unwrap());
-    assert_eq!(r.crashes, recorded["crashes"].as_u64().unwrap());
-    assert_eq!(r.overtakes, recorded["overtakes"].as_u64().unwrap());
-    assert_eq!(
-        r.sustained_overtakes,
-        recorded["sustained_overtakes"].as_u64().unwrap()
-    );
+    let opponent = &config.race.as_ref().unwrap().opponent;
+    races_as_recorded(name, &raw, opponent, name);
 }
 
 /// `policies/stage2_G_student.blob` is the first warm-start stage of row G, made by the
@@ -172,39 +171,18 @@ fn check_race(name: &str, config_name: &str) {
 /// `configs/stage2_G.toml` refines it into `policies/stage2.blob`.
 #[test]
 fn the_stage2_student_is_its_configs_warm_start_and_races_as_recorded() {
-    let raw = std::fs::read(root().join("policies/stage2_G_student.blob")).unwrap();
-    let config = TrainConfig::load(&root().join("policies/stage2_G_student/config.toml")).unwrap();
-    let bytes = AlignedBytes::new(&raw);
-    let blob = Blob::parse(bytes.as_bytes()).unwrap();
-    let p = &blob.header().provenance;
-    assert_eq!(p.config_hash, config.hash(), "made with another config");
-    assert_eq!(p.seed, config.run.seed);
-    assert_eq!(p.iterations, 0, "the warm start, before any PPO iteration");
-    assert_eq!(p.name.as_str(), config.run.name);
-    assert_eq!(p.preset.as_str(), config.env.preset);
+    let (raw, _, iterations) =
+        shipped_blob("stage2_G_student", "policies/stage2_G_student/config.toml");
+    assert_eq!(iterations, 0, "the warm start, before any PPO iteration");
     let g = TrainConfig::load(&root().join("host-trainer/configs/stage2_G.toml")).unwrap();
     assert_eq!(
         g.warm_start.and_then(|w| w.student).as_deref(),
         Some("policies/stage2_G_student.blob")
     );
-
-    let recorded: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(root().join("policies/stage2_G_student/eval.json")).unwrap(),
-    )
-    .unwrap();
-    let ego = PilotSpec::from_blob("student", &raw).unwrap();
-    let opponent_raw = std::fs::read(root().join("policies/stage1_guarded.blob")).unwrap();
-    let opponent = PilotSpec::from_blob("opponent", &opponent_raw).unwrap();
-    let eval = EvalConfig {
-        preset: Preset::paper(),
-        episodes: recorded["episodes"].as_u64().unwrap() as u32,
-        seconds: recorded["episode_seconds"].as_f64().unwrap() as f32,
-        seed: recorded["seed"].as_u64().unwrap(),
-        spawn: None,
-    };
-    let r = report(&ego, Some(&opponent), &eval);
-    println!("{}", r.table());
-    assert_eq!(r.gates_passed, recorded["gates_passed"].as_u64().unwrap());
-    assert_eq!(r.crashes, recorded["crashes"].as_u64().unwrap());
-    assert_eq!(r.overtakes, recorded["overtakes"].as_u64().unwrap());
+    races_as_recorded(
+        "stage2_G_student",
+        &raw,
+        "policies/stage1_guarded.blob",
+        "stage2_G_student",
+    );
 }
