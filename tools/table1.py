@@ -8,12 +8,16 @@ spawn) and POLICIES_DIR/stage2/eval.json (row G) and POLICIES_DIR/stage2_{B..F}/
 (the ablations) for the races, each written by `sitl eval --json` (20 or more seeded 45 s
 episodes; the commands are in docs/RESULTS.md). Prints a Markdown table: every metric with
 its 95 % interval (Student t over episodes, as the referee computes it) and the paper's
-value beside it. A row whose report is missing is printed as "not trained". Standard
-library only.
+value beside it. A row whose report is missing is printed as "not trained". Then the
+budget of every trained stage-2 row, from its `config.toml` and `metrics.jsonl`: the
+warm start's DAgger rounds and env steps, the PPO iterations and samples, and the wall-clock
+time of the run (row G's first warm-start stage, `stage2_G_student`, is its own run and is
+added). Standard library only (Python 3.11+).
 """
 import json
 import os
 import sys
+import tomllib
 
 # The paper's Table 1: success rate (passed/encountered), crash rate (/s), best lap (s),
 # sustained overtake rate (sustained/overtakes).
@@ -87,6 +91,50 @@ def main():
         path = os.path.join(root, REPORTS.get(letter, f"stage2_{letter}"), "eval.json")
         report = json.load(open(path)) if os.path.exists(path) else None
         print("| " + " | ".join(row(letter, report)) + " |")
+    budget(root)
+
+
+def warm_steps(config):
+    """(rounds, env steps) of a config's warm start, all stages."""
+    warm = config.get("warm_start")
+    if warm is None:
+        return 0, 0
+    envs = config["env"]["num_envs"]
+    stages = [warm] + warm.get("refine", [])
+    return (
+        sum(s["rounds"] for s in stages),
+        sum(s["rounds"] * s["steps_per_env"] * envs for s in stages),
+    )
+
+
+def budget(root):
+    print()
+    print("| row | warm-start rounds | warm-start env steps | PPO iterations (critic-only) | PPO samples | wall clock |")
+    print("|---|---|---|---|---|---|")
+    for letter in "BCDEFG":
+        name = REPORTS.get(letter, f"stage2_{letter}")
+        directory = os.path.join(root, name)
+        if not os.path.exists(os.path.join(directory, "metrics.jsonl")):
+            continue
+        config = tomllib.load(open(os.path.join(directory, "config.toml"), "rb"))
+        rounds, steps = warm_steps(config)
+        wall_s = 0.0
+        for line in open(os.path.join(directory, "metrics.jsonl")):
+            last = json.loads(line)
+        wall_s += last["wall_s"]
+        if letter == "G":
+            first = tomllib.load(open(os.path.join(root, "stage2_G_student", "config.toml"), "rb"))
+            r0, s0 = warm_steps(first)
+            rounds, steps = rounds + r0, steps + s0
+            for line in open(os.path.join(root, "stage2_G_student", "train.log")):
+                if line.startswith("imitation done in "):
+                    wall_s += float(line.split()[3])
+        run = config["run"]
+        critic = config.get("warm_start", {}).get("critic_iterations", 0)
+        print(
+            f"| {letter} | {rounds} | {steps / 1e6:.2f} M | {run['iterations']} ({critic}) "
+            f"| {last['samples'] / 1e6:.2f} M | {wall_s / 60:.0f} min |"
+        )
 
 
 if __name__ == "__main__":
