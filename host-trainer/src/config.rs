@@ -137,32 +137,6 @@ pub struct Refine {
     pub learning_rate_final: Option<f64>,
 }
 
-impl WarmStart {
-    /// The warm start's stages in order: itself, then each `refine` stage as a warm start of
-    /// its own (the student flying from the first round).
-    pub fn stages(&self) -> Vec<WarmStart> {
-        let mut stages = vec![WarmStart {
-            refine: Vec::new(),
-            ..self.clone()
-        }];
-        for r in &self.refine {
-            stages.push(WarmStart {
-                rounds: r.rounds,
-                steps_per_env: r.steps_per_env,
-                epochs: r.epochs,
-                max_samples: r.max_samples,
-                learning_rate: r.learning_rate,
-                learning_rate_final: r.learning_rate_final,
-                teacher_share_start: 0.0,
-                student: None,
-                refine: Vec::new(),
-                ..self.clone()
-            });
-        }
-        stages
-    }
-}
-
 /// Name, seed, budget and bookkeeping of a run.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -332,6 +306,30 @@ impl core::fmt::Display for ConfigError {
 impl std::error::Error for ConfigError {}
 
 impl WarmStart {
+    /// The warm start's stages in order: itself, then each `refine` stage as a warm start of
+    /// its own (the student flying from the first round).
+    pub fn stages(&self) -> Vec<WarmStart> {
+        let mut stages = vec![WarmStart {
+            refine: Vec::new(),
+            ..self.clone()
+        }];
+        for r in &self.refine {
+            stages.push(WarmStart {
+                rounds: r.rounds,
+                steps_per_env: r.steps_per_env,
+                epochs: r.epochs,
+                max_samples: r.max_samples,
+                learning_rate: r.learning_rate,
+                learning_rate_final: r.learning_rate_final,
+                teacher_share_start: 0.0,
+                student: None,
+                refine: Vec::new(),
+                ..self.clone()
+            });
+        }
+        stages
+    }
+
     /// The teacher's share β of the executed actions in round `round` (0-based):
     /// `teacher_share_start`, falling linearly to 0 at the half-way round.
     pub fn teacher_share(&self, round: u32) -> f64 {

@@ -238,8 +238,9 @@ pub fn referee_prefers(a: &IterationMetrics, b: &IterationMetrics) -> bool {
     ka.0 > kb.0 || (ka.0 == kb.0 && ka.1 > kb.1)
 }
 
-/// The best-scored evaluation of `history` (`run.keep_best`).
-fn best_evaluation(history: &[IterationMetrics]) -> Option<&IterationMetrics> {
+/// The best-scored evaluation of `history` (`run.keep_best`): the one [`referee_prefers`]
+/// to every other, the earliest of equals.
+pub fn best_evaluation(history: &[IterationMetrics]) -> Option<&IterationMetrics> {
     history
         .iter()
         .filter(|m| m.eval_success_rate.is_some())
@@ -247,6 +248,12 @@ fn best_evaluation(history: &[IterationMetrics]) -> Option<&IterationMetrics> {
             Some(b) if !referee_prefers(m, b) => Some(b),
             _ => Some(m),
         })
+}
+
+/// The actor (weights and σ) as RSL-RL's safetensors, written beside every exported blob.
+fn actor_safetensors<A: PolicyNet>(actor: &A, arch: &Architecture) -> Result<Vec<u8>, TrainError> {
+    crate::rslrl::export_actor(arch, &actor.payload(), Some(&actor.std()))
+        .map_err(|e| TrainError::Export(e.to_string()))
 }
 
 /// Where `run.keep_best` keeps the actor of an evaluated iteration (never overwritten, so a
@@ -753,12 +760,14 @@ fn actor_from_blob<A: PolicyNet>(
         .ok_or_else(|| TrainError::Checkpoint(format!("{}: weights do not fit", path.display())))
 }
 
-/// The imitation warm start of a fresh run: the student replaces the initial actor (its σ
+/// The imitation warm start of a fresh run from `student` (the initial actor, or
+/// `warm_start.student`): the result replaces the initial actor (its σ
 /// kept), the rounds go to `imitation.jsonl`, and a checkpoint at iteration 0 keeps a resume
 /// from redoing it.
 #[allow(clippy::too_many_arguments)]
 fn warm_start<A: PolicyNet, C: ValueNet>(
     state: &mut RunState<A, C>,
+    student: A,
     config: &TrainConfig,
     warm: &crate::config::WarmStart,
     paths: &Paths,
@@ -784,20 +793,23 @@ fn warm_start<A: PolicyNet, C: ValueNet>(
     };
     let log_path = paths.out.join("imitation.jsonl");
     let mut text = String::new();
-    let mut actor = state.learner.actor.clone();
+    // A line above the progress bar, or on stdout without one.
+    let say = |line: String| {
+        if progress {
+            bar.println(line);
+        } else {
+            println!("{line}");
+        }
+    };
+    let mut actor = student;
     // Rounds are numbered through the stages in the log.
     let mut before = 0;
     for (k, stage) in warm.stages().iter().enumerate() {
         if k > 0 {
-            let line = format!(
+            say(format!(
                 "refine stage {k}: {} rounds of {} steps, the student flying",
                 stage.rounds, stage.steps_per_env
-            );
-            if progress {
-                bar.println(line);
-            } else {
-                println!("{line}");
-            }
+            ));
         }
         let last = stage.rounds;
         actor = imitate(actor, stage, &mut |r| {
@@ -810,15 +822,10 @@ fn warm_start<A: PolicyNet, C: ValueNet>(
             text.push_str(&serde_json::to_string(&r).unwrap_or_default());
             text.push('\n');
             if r.round.is_multiple_of(5) || r.round == before + last {
-                let line = format!(
+                say(format!(
                     "round {:>3}  teacher {:.2}  {} samples  mse {:.4}  gates {:.2}/s  crashes {:.3}/s",
                     r.round, r.teacher_share, r.samples, r.mse, r.gates_per_s, r.crash_rate_per_s
-                );
-                if progress {
-                    bar.println(line);
-                } else {
-                    println!("{line}");
-                }
+                ));
             }
         })?
         .0;
@@ -1098,18 +1105,16 @@ fn run_networks<A: Imitate, C: ValueNet>(
             std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
             save_checkpoint(&paths, &state, config)?;
         } else if let Some(warm) = &config.warm_start {
-            if let Some(path) = &warm.student {
-                let actor = actor_from_blob(Path::new(path), &arch, config, &device)?;
-                state.learner = Learner::new(
-                    actor,
-                    state.learner.critic.clone(),
-                    state.learner.learning_rate,
-                    device.clone(),
-                );
-                println!("the warm start refines the student {path}");
-            }
+            let student = match &warm.student {
+                Some(path) => {
+                    println!("the warm start refines the student {path}");
+                    actor_from_blob(Path::new(path), &arch, config, &device)?
+                }
+                None => state.learner.actor.clone(),
+            };
             warm_start(
                 &mut state,
+                student,
                 config,
                 warm,
                 &paths,
@@ -1293,14 +1298,9 @@ fn run_networks<A: Imitate, C: ValueNet>(
                 std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
                 let p = best_candidate_path(&paths, state.iteration, "blob");
                 write_atomically(&p, &blob).map_err(io(&p))?;
-                let st = crate::rslrl::export_actor(
-                    &arch,
-                    &state.learner.actor.payload(),
-                    Some(&state.learner.actor.std()),
-                )
-                .map_err(|e| TrainError::Export(e.to_string()))?;
                 let p = best_candidate_path(&paths, state.iteration, "safetensors");
-                write_atomically(&p, &st).map_err(io(&p))?;
+                write_atomically(&p, &actor_safetensors(&state.learner.actor, &arch)?)
+                    .map_err(io(&p))?;
             }
             let lap = m
                 .eval_best_lap_s
@@ -1357,12 +1357,7 @@ fn run_networks<A: Imitate, C: ValueNet>(
             }
             None => (
                 actor_blob(&state.learner.actor, config, state.iteration)?,
-                crate::rslrl::export_actor(
-                    &arch,
-                    &state.learner.actor.payload(),
-                    Some(&state.learner.actor.std()),
-                )
-                .map_err(|e| TrainError::Export(e.to_string()))?,
+                actor_safetensors(&state.learner.actor, &arch)?,
             ),
         };
         let p = paths.out.join(format!("{}.blob", config.run.name));

@@ -146,17 +146,7 @@ fn check_race(name: &str, config_name: &str) {
         Some(config.run.iterations),
         "{name}: the run finished"
     );
-    let best = metrics
-        .iter()
-        .filter(|m| m.eval_success_rate.is_some())
-        .fold(
-            None,
-            |b: Option<&host_trainer::train::IterationMetrics>, m| match b {
-                Some(b) if !host_trainer::train::referee_prefers(m, b) => Some(b),
-                _ => Some(m),
-            },
-        )
-        .unwrap();
+    let best = host_trainer::train::best_evaluation(&metrics).unwrap();
     assert_eq!(
         iterations, best.iteration,
         "{name}: not the best evaluation"
