@@ -24,6 +24,18 @@ pub mod size_image;
 #[cfg(target_os = "none")]
 pub mod stack;
 
+/// The panic handler of the images QEMU runs (the test image and the instruction-count
+/// benches): prints the panic over semihosting and exits QEMU with a failure status, so a
+/// panic fails the run instead of hanging it.
+#[cfg(target_os = "none")]
+pub fn exit_on_panic(info: &core::panic::PanicInfo<'_>) -> ! {
+    cortex_m_semihosting::hprintln!("panicked: {}", info);
+    cortex_m_semihosting::debug::exit(cortex_m_semihosting::debug::EXIT_FAILURE);
+    loop {
+        cortex_m::asm::bkpt();
+    }
+}
+
 /// The command that builds and runs the test image (the runner is in `.cargo/config.toml`).
 pub const RUN_TESTS: &str = "cargo run -p cortex-m-tests --release --target thumbv7em-none-eabihf";
 

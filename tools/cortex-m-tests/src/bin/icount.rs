@@ -30,11 +30,7 @@ fn main() -> ! {
 #[cfg(target_os = "none")]
 #[panic_handler]
 fn panic(info: &core::panic::PanicInfo<'_>) -> ! {
-    cortex_m_semihosting::hprintln!("panicked: {}", info);
-    cortex_m_semihosting::debug::exit(cortex_m_semihosting::debug::EXIT_FAILURE);
-    loop {
-        cortex_m::asm::bkpt();
-    }
+    cortex_m_tests::exit_on_panic(info)
 }
 
 #[cfg(target_os = "none")]
