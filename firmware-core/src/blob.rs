@@ -563,8 +563,11 @@ mod encode_std {
     impl std::error::Error for EncodeError {}
     impl std::error::Error for BlobError {}
 
-    fn check_weights(header: &BlobHeader, weights: &[f32]) -> Result<(), EncodeError> {
-        let expected = header.architecture.param_count();
+    fn check_weights(
+        arch: &crate::policy::Architecture,
+        weights: &[f32],
+    ) -> Result<(), EncodeError> {
+        let expected = arch.param_count();
         if weights.len() != expected {
             return Err(EncodeError::WrongWeightCount {
                 expected,
@@ -604,7 +607,7 @@ mod encode_std {
     /// Encodes f32 `weights` (payload order) under `header` (its `payload_len` and `dtype`
     /// are set here).
     pub fn encode(header: &BlobHeader, weights: &[f32]) -> Result<Vec<u8>, EncodeError> {
-        check_weights(header, weights)?;
+        check_weights(&header.architecture, weights)?;
         let payload: Vec<u8> = weights.iter().flat_map(|w| w.to_le_bytes()).collect();
         assemble(header, WeightDtype::F32, &payload)
     }
@@ -614,7 +617,7 @@ mod encode_std {
     /// away from zero), biases kept in f32 (module docs, "Payload (dtype I8)"). A row of
     /// zeros gets scale 0.
     pub fn encode_i8(header: &BlobHeader, weights: &[f32]) -> Result<Vec<u8>, EncodeError> {
-        check_weights(header, weights)?;
+        check_weights(&header.architecture, weights)?;
         let arch = &header.architecture;
         let mut payload = Vec::with_capacity(arch.payload_bytes(WeightDtype::I8));
         let mut rest = weights;
@@ -625,10 +628,7 @@ mod encode_std {
                 payload.extend(tensor.iter().flat_map(|w| w.to_le_bytes()));
                 continue;
             }
-            let scales: Vec<f32> = tensor
-                .chunks_exact(t.cols)
-                .map(|row| row.iter().fold(0.0f32, |m, w| m.max(w.abs())) / 127.0)
-                .collect();
+            let scales: Vec<f32> = tensor.chunks_exact(t.cols).map(row_scale).collect();
             payload.extend(scales.iter().flat_map(|s| s.to_le_bytes()));
             for (row, &scale) in tensor.chunks_exact(t.cols).zip(&scales) {
                 let start = payload.len();
@@ -637,6 +637,40 @@ mod encode_std {
             }
         }
         assemble(header, WeightDtype::I8, &payload)
+    }
+
+    /// `weights` (payload order for `arch`) on the int8 grid that [`encode_i8`] stores
+    /// them on: every matrix weight replaced by its row's `scale · q`, biases unchanged.
+    /// An int8 blob's [`Blob::dequantized`] weights are exactly these. Quantisation-aware
+    /// training runs its forward pass on them.
+    pub fn int8_grid(
+        arch: &crate::policy::Architecture,
+        weights: &[f32],
+    ) -> Result<Vec<f32>, EncodeError> {
+        check_weights(arch, weights)?;
+        let mut out = Vec::with_capacity(weights.len());
+        let mut rest = weights;
+        for t in arch.tensors() {
+            let (tensor, tail) = rest.split_at(t.len());
+            rest = tail;
+            if t.cols == 0 {
+                out.extend_from_slice(tensor);
+                continue;
+            }
+            for row in tensor.chunks_exact(t.cols) {
+                let scale = row_scale(row);
+                out.extend(
+                    row.iter()
+                        .map(|&w| f32::from(quantize_weight(w, scale)) * scale),
+                );
+            }
+        }
+        Ok(out)
+    }
+
+    /// The symmetric int8 scale of one matrix row: `max |w| / 127`.
+    fn row_scale(row: &[f32]) -> f32 {
+        row.iter().fold(0.0f32, |m, w| m.max(w.abs())) / 127.0
     }
 
     /// One weight in int8 under its row's `scale`.
@@ -755,5 +789,5 @@ mod encode_std {
 
 #[cfg(feature = "std")]
 pub use encode_std::{
-    AlignedBytes, ConvertError, EncodeError, convert, convert_bytes, encode, encode_i8,
+    AlignedBytes, ConvertError, EncodeError, convert, convert_bytes, encode, encode_i8, int8_grid,
 };

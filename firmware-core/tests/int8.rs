@@ -2,7 +2,9 @@
 //! have. The Cortex-M4 image checks that its SMLAD kernel computes the host's bits
 //! (`cargo run -p tools -- cortex-m test`).
 
-use firmware_core::blob::{AlignedBytes, Blob, BlobError, WeightDtype, convert, encode_i8};
+use firmware_core::blob::{
+    AlignedBytes, Blob, BlobError, EncodeError, WeightDtype, convert, encode_i8, int8_grid,
+};
 use firmware_core::crc32::crc32;
 use firmware_core::nn::{dot_i8_i16, i8_row_bytes};
 use firmware_core::observation::Observation;
@@ -99,6 +101,37 @@ fn dequantised_weights_are_within_half_a_step_of_the_originals() {
         .expect("to i8");
         assert_eq!(again, bytes.as_bytes(), "row {}", row.letter());
     }
+}
+
+#[test]
+fn the_int8_grid_is_what_an_int8_blob_holds_and_stays_put() {
+    // Quantisation-aware training runs its forward pass on `int8_grid` and ends on it: the
+    // int8 blob of grid weights must dequantise to exactly those weights (or the deployed
+    // policy is not the trained one), and the grid of grid weights must be themselves.
+    for row in [TableRow::A, TableRow::C, TableRow::G] {
+        let h = synthetic::header(row, 11);
+        let w = synthetic::weights(&h.architecture, 11);
+        let grid = int8_grid(&h.architecture, &w).expect("grid");
+        let bytes = AlignedBytes::new(&encode_i8(&h, &w).expect("encode"));
+        let deq = Blob::parse(bytes.as_bytes()).expect("parse").dequantized();
+        assert_eq!(grid, deq, "row {}", row.letter());
+        assert_ne!(grid, w, "row {}: the grid moves the weights", row.letter());
+        assert_eq!(int8_grid(&h.architecture, &grid).expect("grid"), grid);
+        let again = AlignedBytes::new(&encode_i8(&h, &grid).expect("encode"));
+        assert_eq!(again.as_bytes(), bytes.as_bytes(), "row {}", row.letter());
+    }
+    let h = synthetic::header(TableRow::A, 1);
+    let w = synthetic::weights(&h.architecture, 1);
+    assert!(matches!(
+        int8_grid(&h.architecture, &w[1..]),
+        Err(EncodeError::WrongWeightCount { .. })
+    ));
+    let mut bad = w.clone();
+    bad[3] = f32::NAN;
+    assert_eq!(
+        int8_grid(&h.architecture, &bad),
+        Err(EncodeError::NonFiniteWeight { index: 3 })
+    );
 }
 
 #[test]

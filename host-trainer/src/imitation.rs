@@ -93,6 +93,79 @@ fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
 
+/// The weights a stage flies and fits the student with: its own, or under
+/// `quantization_aware` their int8 grid (what its int8 blob would hold).
+fn forward_payload(
+    payload: Vec<f32>,
+    arch: &Architecture,
+    warm: &WarmStart,
+) -> Result<Vec<f32>, TrainError> {
+    if !warm.quantization_aware {
+        return Ok(payload);
+    }
+    firmware_core::blob::int8_grid(arch, &payload)
+        .map_err(|e| TrainError::Unsupported(format!("quantisation-aware imitation: {e}")))
+}
+
+/// A copy of `actor` (σ kept) holding `payload`, with parameters of its own.
+fn actor_holding<A: crate::ppo::PolicyNet>(
+    actor: &A,
+    arch: &Architecture,
+    payload: &[f32],
+    device: &Device,
+) -> Result<A, TrainError> {
+    A::from_payload(arch, payload, &actor.std(), device)
+        .ok_or_else(|| TrainError::Unsupported("imitation: actor copy".into()))
+}
+
+/// The forward network of one regression step: the actor itself, or under
+/// `quantization_aware` a copy on its int8 grid, whose gradients [`to_latent`] moves onto
+/// the actor (the straight-through estimator: the rounding's gradient taken as 1).
+fn forward_actor<A: crate::ppo::PolicyNet>(
+    actor: &A,
+    arch: &Architecture,
+    warm: &WarmStart,
+    device: &Device,
+) -> Result<A, TrainError> {
+    if !warm.quantization_aware {
+        return Ok(actor.clone());
+    }
+    actor_holding(
+        actor,
+        arch,
+        &forward_payload(actor.payload(), arch, warm)?,
+        device,
+    )
+}
+
+/// The gradients of `forward` (from [`forward_actor`]) as the actor's.
+fn to_latent<A: crate::ppo::PolicyNet>(
+    forward: &A,
+    grads: GradientsParams,
+    actor: &A,
+    warm: &WarmStart,
+) -> GradientsParams {
+    if warm.quantization_aware {
+        crate::ppo::transfer_gradients(forward, grads, actor)
+    } else {
+        grads
+    }
+}
+
+/// The student a stage ends with: under `quantization_aware` the actor moved onto its int8
+/// grid, so that its f32 and int8 blobs hold the same policy.
+fn end_of_stage<A: crate::ppo::PolicyNet>(
+    actor: A,
+    arch: &Architecture,
+    warm: &WarmStart,
+    device: &Device,
+) -> Result<A, TrainError> {
+    if !warm.quantization_aware {
+        return Ok(actor);
+    }
+    forward_actor(&actor, arch, warm, device)
+}
+
 /// The teacher, the environment and the generator of a warm start (its own seeds).
 fn set_up(
     config: &TrainConfig,
@@ -125,7 +198,7 @@ pub fn imitate(
     let mut rounds = Vec::new();
     for round in 0..warm.rounds {
         let beta = warm.teacher_share(round);
-        let payload = actor.payload();
+        let payload = forward_payload(actor.payload(), arch, warm)?;
         let policy = Policy::from_payload(arch, &payload)
             .map_err(|e| TrainError::Unsupported(format!("imitation: {e}")))?;
         let mut from_teacher = 0usize;
@@ -175,10 +248,12 @@ pub fn imitate(
                     Tensor::<2>::from_data(TensorData::new(o, [idx.len(), obs_dim]), device);
                 let act_t =
                     Tensor::<2>::from_data(TensorData::new(a, [idx.len(), ACTION_DIM]), device);
-                let loss = (actor.mean(obs_t) - act_t).square().mean();
+                let forward = forward_actor(&actor, arch, warm, device)?;
+                let loss = (forward.mean(obs_t) - act_t).square().mean();
                 sum += f64::from(values(loss.clone().inner()).first().copied().unwrap_or(0.0));
                 batches += 1.0;
-                let grads = GradientsParams::from_grads(loss.backward(), &actor);
+                let grads = GradientsParams::from_grads(loss.backward(), &forward);
+                let grads = to_latent(&forward, grads, &actor, warm);
                 actor = optim.step(warm.round_learning_rate(round), actor, grads);
             }
             mse = sum / f64::max(batches, 1.0);
@@ -196,7 +271,7 @@ pub fn imitate(
         log(&r);
         rounds.push(r);
     }
-    Ok((actor, rounds))
+    Ok((end_of_stage(actor, arch, warm, device)?, rounds))
 }
 
 /// Who labels the states of a warm start.
@@ -287,7 +362,7 @@ pub fn imitate_recurrent(
     let valid = device.clone().without_autodiff();
     for round in 0..warm.rounds {
         let beta = warm.teacher_share(round);
-        let payload = actor.net.payload();
+        let payload = forward_payload(actor.net.payload(), arch, warm)?;
         let policy = Policy::from_payload(arch, &payload)
             .map_err(|e| TrainError::Unsupported(format!("imitation: {e}")))?;
         let mut memory = vec![policy.initial_state(); n];
@@ -341,9 +416,10 @@ pub fn imitate_recurrent(
             // (round, window start, envs) minibatches with the windows' starting states.
             let mut batches = Vec::new();
             let mut starts: Vec<Vec<f32>> = Vec::new();
+            let start_net = forward_actor(&actor, arch, warm, device)?.net.valid();
             for (ri, r) in data.iter().enumerate() {
                 let steps = r.labels.len() / (n * ACTION_DIM);
-                let net = actor.net.valid();
+                let net = start_net.clone();
                 let mut state = net.zero_state(n, &valid);
                 for t0 in (0..steps).step_by(window) {
                     let len = window.min(steps - t0);
@@ -417,30 +493,27 @@ pub fn imitate_recurrent(
                 // gradient. The second half runs on a copy of the actor with parameters of
                 // its own (burn's autodiff cannot run two backward passes through shared
                 // parameters at once); its gradients are moved onto the actor's.
+                // Under `quantization_aware` both halves run on copies on the int8 grid.
                 let (left, right) = group.split_at(group.len() / 2);
+                let forward = forward_actor(&actor, arch, warm, device)?;
                 let (grads, value) = if left.is_empty() {
-                    pass(&actor, right)
+                    pass(&forward, right)
                 } else {
-                    let twin = RecurrentActor::from_payload(
-                        arch,
-                        &actor.net.payload(),
-                        &actor.std(),
-                        device,
-                    )
-                    .ok_or_else(|| TrainError::Unsupported("imitation: actor copy".into()))?;
+                    let twin = actor_holding(&actor, arch, &forward.net.payload(), device)?;
                     let ((gl, vl), (gr, vr)) = std::thread::scope(|sc| {
                         let job = sc.spawn(|| pass(&twin, left));
-                        let r = pass(&actor, right);
+                        let r = pass(&forward, right);
                         (
                             job.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
                             r,
                         )
                     });
-                    let gl = crate::ppo::transfer_gradients(&twin, gl, &actor);
+                    let gl = crate::ppo::transfer_gradients(&twin, gl, &forward);
                     let wl = left.len() as f32 / group.len() as f32;
-                    let grads = crate::ppo::weighted_sum(&actor, gl, wl, gr, 1.0 - wl);
+                    let grads = crate::ppo::weighted_sum(&forward, gl, wl, gr, 1.0 - wl);
                     (grads, f64::from(wl) * vl + f64::from(1.0 - wl) * vr)
                 };
+                let grads = to_latent(&forward, grads, &actor, warm);
                 sum += value;
                 count += 1.0;
                 actor = optim.step(warm.round_learning_rate(round), actor, grads);
@@ -463,5 +536,5 @@ pub fn imitate_recurrent(
         log(&r);
         rounds.push(r);
     }
-    Ok((actor, rounds))
+    Ok((end_of_stage(actor, arch, warm, device)?, rounds))
 }
