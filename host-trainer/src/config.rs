@@ -116,6 +116,12 @@ pub struct WarmStart {
     /// weights on that grid, so the f32 and int8 blobs of the student are the same policy.
     #[serde(default, skip_serializing_if = "is_false")]
     pub quantization_aware: bool,
+    /// Referee every round's student (`run.eval_races` races on `run.eval_seed`, logged in
+    /// `imitation.jsonl`, its blob kept as `checkpoints/warm_start_round_NNN.blob`) and end
+    /// the warm start with the best-scored one (as `run.keep_best` ranks them) instead of the
+    /// last. For all the stages; set it here, not per refine stage.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub keep_best_round: bool,
     /// Further DAgger stages after these rounds, in order, each from the student the last
     /// one made, with the student flying from its first round (`[[warm_start.refine]]`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]

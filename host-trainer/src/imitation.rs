@@ -47,6 +47,13 @@ pub struct ImitationRound {
     pub gates_per_s: f64,
     /// Crashes per simulated second by the executed mixture.
     pub crash_rate_per_s: f64,
+    /// The referee's success rate of the round's student (`warm_start.keep_best_round`:
+    /// `run.eval_races` races on `run.eval_seed`); absent where not refereed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub referee_success_rate: Option<f64>,
+    /// The referee's crashes per second of the round's student, likewise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub referee_crash_rate: Option<f64>,
 }
 
 /// An actor the warm start can train: the feed-forward one by [`imitate`], the recurrent
@@ -59,7 +66,7 @@ pub trait Imitate: crate::ppo::PolicyNet {
         config: &TrainConfig,
         warm: &WarmStart,
         device: &Device,
-        log: &mut dyn FnMut(&ImitationRound),
+        log: &mut dyn FnMut(&ImitationRound, &[f32]),
     ) -> Result<(Self, Vec<ImitationRound>), TrainError>;
 }
 
@@ -70,7 +77,7 @@ impl Imitate for Actor {
         config: &TrainConfig,
         warm: &WarmStart,
         device: &Device,
-        log: &mut dyn FnMut(&ImitationRound),
+        log: &mut dyn FnMut(&ImitationRound, &[f32]),
     ) -> Result<(Self, Vec<ImitationRound>), TrainError> {
         imitate(self, arch, config, warm, device, log)
     }
@@ -83,7 +90,7 @@ impl Imitate for RecurrentActor {
         config: &TrainConfig,
         warm: &WarmStart,
         device: &Device,
-        log: &mut dyn FnMut(&ImitationRound),
+        log: &mut dyn FnMut(&ImitationRound, &[f32]),
     ) -> Result<(Self, Vec<ImitationRound>), TrainError> {
         imitate_recurrent(self, arch, config, warm, device, log)
     }
@@ -179,14 +186,15 @@ fn set_up(
 }
 
 /// Runs the warm start on `actor` and returns the student (σ unchanged) with the rounds'
-/// statistics; `log` receives one line per round.
+/// statistics; `log` receives one line per round with the round's student (its weights as
+/// it flies: on the int8 grid under `quantization_aware`).
 pub fn imitate(
     mut actor: Actor,
     arch: &Architecture,
     config: &TrainConfig,
     warm: &WarmStart,
     device: &Device,
-    log: &mut dyn FnMut(&ImitationRound),
+    log: &mut dyn FnMut(&ImitationRound, &[f32]),
 ) -> Result<(Actor, Vec<ImitationRound>), TrainError> {
     let (teacher, mut env, mut rng) = set_up(config, warm)?;
     let (n, obs_dim) = (env.num_envs(), env.obs_dim());
@@ -267,8 +275,9 @@ pub fn imitate(
             mse_first_epoch: 0.0,
             gates_per_s: stats.gates_passed as f64 / sim_s.max(1e-9),
             crash_rate_per_s: stats.crashes as f64 / sim_s.max(1e-9),
+            ..ImitationRound::default()
         };
-        log(&r);
+        log(&r, &forward_payload(actor.payload(), arch, warm)?);
         rounds.push(r);
     }
     Ok((end_of_stage(actor, arch, warm, device)?, rounds))
@@ -348,7 +357,7 @@ pub fn imitate_recurrent(
     config: &TrainConfig,
     warm: &WarmStart,
     device: &Device,
-    log: &mut dyn FnMut(&ImitationRound),
+    log: &mut dyn FnMut(&ImitationRound, &[f32]),
 ) -> Result<(RecurrentActor, Vec<ImitationRound>), TrainError> {
     let (teacher, mut env, mut rng) = set_up(config, warm)?;
     let (n, obs_dim) = (env.num_envs(), env.obs_dim());
@@ -532,8 +541,9 @@ pub fn imitate_recurrent(
             mse_first_epoch,
             gates_per_s: stats.gates_passed as f64 / sim_s.max(1e-9),
             crash_rate_per_s: stats.crashes as f64 / sim_s.max(1e-9),
+            ..ImitationRound::default()
         };
-        log(&r);
+        log(&r, &forward_payload(actor.net.payload(), arch, warm)?);
         rounds.push(r);
     }
     Ok((end_of_stage(actor, arch, warm, device)?, rounds))

@@ -377,6 +377,16 @@ pub fn actor_blob<A: PolicyNet>(
     config: &TrainConfig,
     iterations: u32,
 ) -> Result<Vec<u8>, TrainError> {
+    payload_blob(&actor.payload(), config, iterations)
+}
+
+/// The blob of the weights `payload` (firmware-core order) under the run's header, as
+/// [`actor_blob`].
+fn payload_blob(
+    payload: &[f32],
+    config: &TrainConfig,
+    iterations: u32,
+) -> Result<Vec<u8>, TrainError> {
     let (row, _) = architecture(config)?;
     let mut name = heapless::String::new();
     name.push_str(&config.run.name)
@@ -394,8 +404,7 @@ pub fn actor_blob<A: PolicyNet>(
     };
     let mut header = BlobHeader::paper(row, provenance);
     header.observation = observation_spec(config);
-    encode(&header, &actor.payload())
-        .map_err(|e| TrainError::Export(format!("blob export failed: {e:?}")))
+    encode(&header, payload).map_err(|e| TrainError::Export(format!("blob export failed: {e:?}")))
 }
 
 /// The referee's verdict on the deterministic policy. A time trial: one 45 s episode from the
@@ -776,7 +785,7 @@ fn warm_start<A: PolicyNet, C: ValueNet>(
     imitate: impl Fn(
         A,
         &crate::config::WarmStart,
-        &mut dyn FnMut(&crate::imitation::ImitationRound),
+        &mut dyn FnMut(&crate::imitation::ImitationRound, &[f32]),
     ) -> Result<(A, Vec<crate::imitation::ImitationRound>), TrainError>,
 ) -> Result<(), TrainError> {
     let started = Instant::now();
@@ -802,6 +811,13 @@ fn warm_start<A: PolicyNet, C: ValueNet>(
         }
     };
     let mut actor = student;
+    let preset = Preset::by_name(&config.env.preset).unwrap_or_else(Preset::paper);
+    if warm.keep_best_round {
+        std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
+    }
+    // `warm_start.keep_best_round`: the best-refereed round so far, its weights.
+    let mut best: Option<(crate::imitation::ImitationRound, Vec<f32>)> = None;
+    let mut failure: Option<TrainError> = None;
     // Rounds are numbered through the stages in the log.
     let mut before = 0;
     for (k, stage) in warm.stages().iter().enumerate() {
@@ -812,24 +828,49 @@ fn warm_start<A: PolicyNet, C: ValueNet>(
             ));
         }
         let last = stage.rounds;
-        actor = imitate(actor, stage, &mut |r| {
-            let r = crate::imitation::ImitationRound {
+        actor = imitate(actor, stage, &mut |r, payload| {
+            let mut r = crate::imitation::ImitationRound {
                 round: before + r.round,
                 ..r.clone()
             };
+            if warm.keep_best_round && failure.is_none() {
+                match referee_round(&r, payload, config, paths, preset) {
+                    Ok(refereed) => r = refereed,
+                    Err(e) => failure = Some(e),
+                }
+                if round_prefers(&r, best.as_ref().map(|b| &b.0)) {
+                    best = Some((r.clone(), payload.to_vec()));
+                }
+            }
             bar.inc(1);
             bar.set_message(format!("mse {:.4}", r.mse));
             text.push_str(&serde_json::to_string(&r).unwrap_or_default());
             text.push('\n');
             if r.round.is_multiple_of(5) || r.round == before + last {
+                let referee = match (r.referee_success_rate, r.referee_crash_rate) {
+                    (Some(s), Some(c)) => format!("  referee: success {s:.3}, crashes {c:.3}/s"),
+                    _ => String::new(),
+                };
                 say(format!(
-                    "round {:>3}  teacher {:.2}  {} samples  mse {:.4}  gates {:.2}/s  crashes {:.3}/s",
+                    "round {:>3}  teacher {:.2}  {} samples  mse {:.4}  gates {:.2}/s  crashes {:.3}/s{referee}",
                     r.round, r.teacher_share, r.samples, r.mse, r.gates_per_s, r.crash_rate_per_s
                 ));
             }
         })?
         .0;
+        if let Some(e) = failure.take() {
+            return Err(e);
+        }
         before += last;
+    }
+    if let Some((round, payload)) = best {
+        let (_, arch) = architecture(config)?;
+        actor = A::from_payload(&arch, &payload, &actor.std(), device)
+            .ok_or_else(|| TrainError::Unsupported("warm start: best round's weights".into()))?;
+        say(format!(
+            "the warm start ends with round {}'s student, the referee's best",
+            round.round
+        ));
     }
     bar.finish_and_clear();
     write_atomically(&log_path, text.as_bytes()).map_err(io(&log_path))?;
@@ -841,7 +882,6 @@ fn warm_start<A: PolicyNet, C: ValueNet>(
         state.learner.learning_rate,
         device.clone(),
     );
-    let preset = Preset::by_name(&config.env.preset).unwrap_or_else(Preset::paper);
     if let Some(r) = referee_eval(
         &actor_blob(&state.learner.actor, config, 0)?,
         preset,
@@ -867,6 +907,47 @@ fn warm_start<A: PolicyNet, C: ValueNet>(
         .map_err(io(&student))?;
     std::fs::create_dir_all(&paths.checkpoints).map_err(io(&paths.checkpoints))?;
     save_checkpoint(paths, state, config)
+}
+
+/// Where `warm_start.keep_best_round` keeps a round's student.
+fn warm_start_round_blob(paths: &Paths, round: u32) -> PathBuf {
+    paths
+        .checkpoints
+        .join(format!("warm_start_round_{round:03}.blob"))
+}
+
+/// `round` with the referee's scores of its student `payload` (`run.eval_races` races on
+/// `run.eval_seed`), whose blob is written to [`warm_start_round_blob`].
+fn referee_round(
+    round: &crate::imitation::ImitationRound,
+    payload: &[f32],
+    config: &TrainConfig,
+    paths: &Paths,
+    preset: Preset,
+) -> Result<crate::imitation::ImitationRound, TrainError> {
+    let blob = payload_blob(payload, config, 0)?;
+    let path = warm_start_round_blob(paths, round.round);
+    write_atomically(&path, &blob).map_err(io(&path))?;
+    let report = referee_eval(&blob, preset, config);
+    Ok(crate::imitation::ImitationRound {
+        referee_success_rate: report.as_ref().map(|r| r.success_rate),
+        referee_crash_rate: report.as_ref().map(|r| r.crash_rate),
+        ..round.clone()
+    })
+}
+
+/// Whether the refereed round `a` is better than `b` (absent: none yet): the higher success,
+/// then the fewer crashes, the earlier of equals ([`referee_prefers`]'s order).
+fn round_prefers(
+    a: &crate::imitation::ImitationRound,
+    b: Option<&crate::imitation::ImitationRound>,
+) -> bool {
+    let key = |r: &crate::imitation::ImitationRound| IterationMetrics {
+        eval_success_rate: r.referee_success_rate,
+        eval_crash_rate: r.referee_crash_rate,
+        ..IterationMetrics::default()
+    };
+    a.referee_success_rate.is_some() && b.is_none_or(|b| referee_prefers(&key(a), &key(b)))
 }
 
 /// Collects `steps` steps of every env of `env` into `rollout` (cleared first): actions are

@@ -267,12 +267,13 @@ fn a_recurrent_student_learns_from_the_stage1_teacher() {
         student_noise_std: 0.1,
         critic_iterations: 0,
         quantization_aware: false,
+        keep_best_round: false,
         refine: Vec::new(),
     };
     let arch = firmware_core::policy::Architecture::table1(firmware_core::policy::TableRow::G);
     let device = Device::flex().autodiff();
     let actor = RecurrentActor::new(&arch, 0.2, &mut host_trainer::model::init_rng(2), &device);
-    let (_, rounds) = imitate_recurrent(actor, &arch, &c, &warm, &device, &mut |_| {}).unwrap();
+    let (_, rounds) = imitate_recurrent(actor, &arch, &c, &warm, &device, &mut |_, _| {}).unwrap();
     assert_eq!(rounds.len(), 4);
     for r in &rounds {
         assert!(
@@ -287,7 +288,7 @@ fn a_recurrent_student_learns_from_the_stage1_teacher() {
     let mut bad = warm.clone();
     bad.teacher_blob = Some("/nonexistent.blob".into());
     let actor = RecurrentActor::new(&arch, 0.2, &mut host_trainer::model::init_rng(2), &device);
-    let e = imitate_recurrent(actor, &arch, &c, &bad, &device, &mut |_| {}).unwrap_err();
+    let e = imitate_recurrent(actor, &arch, &c, &bad, &device, &mut |_, _| {}).unwrap_err();
     assert!(e.to_string().contains("/nonexistent.blob"), "{e}");
 }
 
@@ -326,6 +327,7 @@ fn a_quantization_aware_stage_ends_with_the_student_on_its_int8_grid() {
             student_noise_std: 0.1,
             critic_iterations: 0,
             quantization_aware: true,
+            keep_best_round: false,
             refine: Vec::new(),
         };
         let arch = Architecture::table1(row);
@@ -333,7 +335,7 @@ fn a_quantization_aware_stage_ends_with_the_student_on_its_int8_grid() {
         let actor = fresh(&arch, &device);
         let before = actor.payload();
         let (student, rounds) = actor
-            .imitate(&arch, &c, &warm, &device, &mut |_| {})
+            .imitate(&arch, &c, &warm, &device, &mut |_, _| {})
             .unwrap();
         let weights = student.payload();
         assert_ne!(weights, before, "row {}: the stage trained", row.letter());
@@ -358,4 +360,76 @@ fn a_quantization_aware_stage_ends_with_the_student_on_its_int8_grid() {
     check(TableRow::C, |arch, device| {
         Actor::new(arch, 0.2, &mut init_rng(3), device)
     });
+}
+
+/// `warm_start.keep_best_round`: every round's student is refereed (the scores in
+/// `imitation.jsonl`, the blobs kept), and the warm start ends with the best-scored one
+/// (success rate, then crash rate, then the earlier round), not the last.
+#[test]
+fn keep_best_round_ends_the_warm_start_with_the_referees_best_round() {
+    use host_trainer::config::WarmStart;
+    use host_trainer::imitation::ImitationRound;
+    let mut c = config();
+    c.run.name = "smoke-race-rounds".into();
+    c.run.eval_races = 2;
+    c.run.eval_seed = 3;
+    c.warm_start = Some(WarmStart {
+        teacher_cruise_mps: 9.0,
+        teacher_blob: Some(format!(
+            "{}/../policies/stage1_guarded.blob",
+            env!("CARGO_MANIFEST_DIR")
+        )),
+        student: None,
+        rounds: 5,
+        steps_per_env: 40,
+        epochs: 2,
+        minibatch: 320,
+        max_samples: 100_000,
+        learning_rate: 3e-3,
+        learning_rate_final: None,
+        teacher_share_start: 1.0,
+        student_noise_std: 0.1,
+        critic_iterations: 1,
+        quantization_aware: false,
+        keep_best_round: true,
+        refine: Vec::new(),
+    });
+    let dir = tmp("best-round");
+    let mut opts = options(dir.clone());
+    opts.stop_after = Some(1);
+    run(&c, &opts).unwrap();
+    let rounds: Vec<ImitationRound> = std::fs::read_to_string(dir.join("imitation.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
+    assert_eq!(rounds.len(), 5);
+    let score = |r: &ImitationRound| {
+        (
+            r.referee_success_rate.expect("refereed"),
+            -r.referee_crash_rate.expect("refereed"),
+        )
+    };
+    let mut best = &rounds[0];
+    for r in &rounds[1..] {
+        if score(r) > score(best) {
+            best = r;
+        }
+    }
+    let blob = |round: u32| {
+        std::fs::read(
+            dir.join("checkpoints")
+                .join(format!("warm_start_round_{round:03}.blob")),
+        )
+        .unwrap()
+    };
+    for r in &rounds {
+        assert!(!blob(r.round).is_empty());
+    }
+    assert!(std::fs::read(dir.join("warm_start.blob")).unwrap() == blob(best.round));
+    assert!(
+        best.round < 5,
+        "the last round scored best ({rounds:?}): pick other eval seeds for this test"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }
