@@ -234,27 +234,15 @@ fn keep_best_exports_the_referees_best_evaluation_across_a_resume() {
     let _ = std::fs::remove_dir_all(&split);
 }
 
-/// The recurrent warm start fits the stage-1 teacher: in every one of four small DAgger
-/// rounds in the race, the LSTM student's error against the teacher's labels falls from the
-/// round's first epoch to its last (each round's data is harder than the last's as the
-/// student takes over the flying, so rounds are not compared with each other); and a
-/// missing teacher is an error.
-#[test]
-fn a_recurrent_student_learns_from_the_stage1_teacher() {
-    use host_trainer::config::WarmStart;
-    use host_trainer::imitation::imitate_recurrent;
-    use host_trainer::recurrent::RecurrentActor;
-    let mut c = config();
-    c.run.row = 'G';
-    c.env.num_envs = 16;
-    c.ppo.steps_per_env = 20;
-    let teacher = format!(
-        "{}/../policies/stage1_guarded.blob",
-        env!("CARGO_MANIFEST_DIR")
-    );
-    let warm = WarmStart {
+/// A small DAgger warm start on the shipped stage-1 policy: 4 rounds of 60 steps, the
+/// teacher's share falling from 1.
+fn teacher_warm_start() -> host_trainer::config::WarmStart {
+    host_trainer::config::WarmStart {
         teacher_cruise_mps: 9.0,
-        teacher_blob: Some(teacher),
+        teacher_blob: Some(format!(
+            "{}/../policies/stage1_guarded.blob",
+            env!("CARGO_MANIFEST_DIR")
+        )),
         student: None,
         rounds: 4,
         steps_per_env: 60,
@@ -269,7 +257,23 @@ fn a_recurrent_student_learns_from_the_stage1_teacher() {
         quantization_aware: false,
         keep_best_round: false,
         refine: Vec::new(),
-    };
+    }
+}
+
+/// The recurrent warm start fits the stage-1 teacher: in every one of four small DAgger
+/// rounds in the race, the LSTM student's error against the teacher's labels falls from the
+/// round's first epoch to its last (each round's data is harder than the last's as the
+/// student takes over the flying, so rounds are not compared with each other); and a
+/// missing teacher is an error.
+#[test]
+fn a_recurrent_student_learns_from_the_stage1_teacher() {
+    use host_trainer::imitation::imitate_recurrent;
+    use host_trainer::recurrent::RecurrentActor;
+    let mut c = config();
+    c.run.row = 'G';
+    c.env.num_envs = 16;
+    c.ppo.steps_per_env = 20;
+    let warm = teacher_warm_start();
     let arch = firmware_core::policy::Architecture::table1(firmware_core::policy::TableRow::G);
     let device = Device::flex().autodiff();
     let actor = RecurrentActor::new(&arch, 0.2, &mut host_trainer::model::init_rng(2), &device);
@@ -310,25 +314,10 @@ fn a_quantization_aware_stage_ends_with_the_student_on_its_int8_grid() {
         c.env.num_envs = 16;
         c.ppo.steps_per_env = 20;
         let warm = WarmStart {
-            teacher_cruise_mps: 9.0,
-            teacher_blob: Some(format!(
-                "{}/../policies/stage1_guarded.blob",
-                env!("CARGO_MANIFEST_DIR")
-            )),
-            student: None,
             rounds: 2,
             steps_per_env: 40,
-            epochs: 3,
-            minibatch: 160,
-            max_samples: 100_000,
-            learning_rate: 1e-3,
-            learning_rate_final: None,
-            teacher_share_start: 1.0,
-            student_noise_std: 0.1,
-            critic_iterations: 0,
             quantization_aware: true,
-            keep_best_round: false,
-            refine: Vec::new(),
+            ..teacher_warm_start()
         };
         let arch = Architecture::table1(row);
         let device = Device::flex().autodiff();
@@ -374,25 +363,14 @@ fn keep_best_round_ends_the_warm_start_with_the_referees_best_round() {
     c.run.eval_races = 2;
     c.run.eval_seed = 3;
     c.warm_start = Some(WarmStart {
-        teacher_cruise_mps: 9.0,
-        teacher_blob: Some(format!(
-            "{}/../policies/stage1_guarded.blob",
-            env!("CARGO_MANIFEST_DIR")
-        )),
-        student: None,
         rounds: 5,
         steps_per_env: 40,
         epochs: 2,
         minibatch: 320,
-        max_samples: 100_000,
         learning_rate: 3e-3,
-        learning_rate_final: None,
-        teacher_share_start: 1.0,
-        student_noise_std: 0.1,
         critic_iterations: 1,
-        quantization_aware: false,
         keep_best_round: true,
-        refine: Vec::new(),
+        ..teacher_warm_start()
     });
     let dir = tmp("best-round");
     let mut opts = options(dir.clone());
