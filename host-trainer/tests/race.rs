@@ -27,6 +27,15 @@ fn tmp(name: &str) -> PathBuf {
     d
 }
 
+/// The lines of a JSON-lines file the run wrote (`metrics.jsonl`, `imitation.jsonl`).
+fn read_jsonl<T: serde::de::DeserializeOwned>(path: &std::path::Path) -> Vec<T> {
+    std::fs::read_to_string(path)
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
 fn options(out: PathBuf) -> RunOptions {
     RunOptions {
         out,
@@ -53,11 +62,7 @@ fn a_race_config_trains_and_exports_a_30_value_policy() {
     assert_eq!(blob.header().observation.velocity_scale_mps, 12.0);
     Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).unwrap();
 
-    let metrics: Vec<IterationMetrics> = std::fs::read_to_string(out.join("metrics.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let metrics: Vec<IterationMetrics> = read_jsonl(&out.join("metrics.jsonl"));
     assert_eq!(metrics.len(), 2);
     for m in &metrics {
         let c = m
@@ -141,13 +146,7 @@ fn a_row_g_race_trains_exports_and_resumes() {
     let mut first = options(split.clone());
     first.stop_after = Some(1);
     assert!(run(&c, &first).unwrap().blob.is_none());
-    let read = |dir: &PathBuf| -> Vec<IterationMetrics> {
-        std::fs::read_to_string(dir.join("metrics.jsonl"))
-            .unwrap()
-            .lines()
-            .map(|l| serde_json::from_str(l).unwrap())
-            .collect()
-    };
+    let read = |dir: &PathBuf| -> Vec<IterationMetrics> { read_jsonl(&dir.join("metrics.jsonl")) };
     let learned = |m: &IterationMetrics| {
         (
             m.reward_per_step,
@@ -195,11 +194,7 @@ fn keep_best_exports_the_referees_best_evaluation_across_a_resume() {
 
     let mut chosen = Vec::new();
     for (dir, summary) in [(&whole, uninterrupted), (&split, resumed)] {
-        let metrics: Vec<IterationMetrics> = std::fs::read_to_string(dir.join("metrics.jsonl"))
-            .unwrap()
-            .lines()
-            .map(|l| serde_json::from_str(l).unwrap())
-            .collect();
+        let metrics: Vec<IterationMetrics> = read_jsonl(&dir.join("metrics.jsonl"));
         assert_eq!(metrics.len(), 3);
         let score =
             |m: &IterationMetrics| (m.eval_success_rate.unwrap(), -m.eval_crash_rate.unwrap());
@@ -376,11 +371,7 @@ fn keep_best_round_ends_the_warm_start_with_the_referees_best_round() {
     let mut opts = options(dir.clone());
     opts.stop_after = Some(1);
     run(&c, &opts).unwrap();
-    let rounds: Vec<ImitationRound> = std::fs::read_to_string(dir.join("imitation.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let rounds: Vec<ImitationRound> = read_jsonl(&dir.join("imitation.jsonl"));
     assert_eq!(rounds.len(), 5);
     let score = |r: &ImitationRound| {
         (
