@@ -115,8 +115,9 @@ const SHIPPED_RACES: &[(&str, &str)] = &[
 /// Every shipped stage-2 blob is its config's run (hash, seed, name, preset), its actor is
 /// the evaluation `run.keep_best` chose from the shipped metrics (the provenance's iteration
 /// is the one the referee scored best there), and it races the shipped opponent exactly as
-/// its `eval.json` records. `policies/stage2.blob` must exist; an ablation not yet trained
-/// is skipped.
+/// its `eval.json` records; where the warm start kept its best round, the run's first
+/// evaluation is that round's score. `policies/stage2.blob` must exist; an ablation not yet
+/// trained is skipped.
 #[test]
 fn shipped_race_blobs_are_their_configs_best_evaluation_and_race_as_recorded() {
     assert!(root().join("policies/stage2.blob").is_file());
@@ -151,6 +152,37 @@ fn check_race(name: &str, config_name: &str) {
         iterations, best.iteration,
         "{name}: not the best evaluation"
     );
+    if config
+        .warm_start
+        .as_ref()
+        .is_some_and(|w| w.keep_best_round)
+    {
+        // The warm start ended with its best-refereed round: the first evaluation (the
+        // critic-only iterations leave the actor as the warm start made it) scores as that
+        // round did, on the same races.
+        let rounds: Vec<host_trainer::imitation::ImitationRound> =
+            std::fs::read_to_string(root().join(format!("policies/{name}/imitation.jsonl")))
+                .unwrap()
+                .lines()
+                .map(|l| serde_json::from_str(l).unwrap())
+                .collect();
+        let score = |s: Option<f64>, c: Option<f64>| (s.expect("refereed"), -c.expect("refereed"));
+        let kept = rounds
+            .iter()
+            .map(|r| score(r.referee_success_rate, r.referee_crash_rate))
+            .fold((f64::NEG_INFINITY, f64::NEG_INFINITY), |a, b| {
+                if b > a { b } else { a }
+            });
+        let first = metrics
+            .iter()
+            .find(|m| m.eval_success_rate.is_some())
+            .unwrap();
+        assert_eq!(
+            score(first.eval_success_rate, first.eval_crash_rate),
+            kept,
+            "{name}: the warm start did not end with its best round"
+        );
+    }
     let opponent = &config.race.as_ref().unwrap().opponent;
     races_as_recorded(name, &raw, opponent, name);
 }
