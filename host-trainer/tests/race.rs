@@ -400,5 +400,38 @@ fn keep_best_round_ends_the_warm_start_with_the_referees_best_round() {
         best.round < 5,
         "the last round scored best ({rounds:?}): pick other eval seeds for this test"
     );
+
+    // Refereeing the rounds only reads the student: without the option the same rounds are
+    // trained, statistic for statistic, and the warm start ends with round 5's weights.
+    let mut plain = c.clone();
+    if let Some(w) = plain.warm_start.as_mut() {
+        w.keep_best_round = false;
+    }
+    let plain_dir = tmp("best-round-off");
+    let mut opts = options(plain_dir.clone());
+    opts.stop_after = Some(1);
+    run(&plain, &opts).unwrap();
+    let plain_rounds: Vec<ImitationRound> = read_jsonl(&plain_dir.join("imitation.jsonl"));
+    let unrefereed = |r: &ImitationRound| ImitationRound {
+        referee_success_rate: None,
+        referee_crash_rate: None,
+        ..r.clone()
+    };
+    assert_eq!(
+        rounds.iter().map(unrefereed).collect::<Vec<_>>(),
+        plain_rounds
+    );
+    let payload = |raw: &[u8]| {
+        let bytes = AlignedBytes::new(raw);
+        Blob::parse(bytes.as_bytes())
+            .unwrap()
+            .payload_words()
+            .to_vec()
+    };
+    assert_eq!(
+        payload(&blob(5)),
+        payload(&std::fs::read(plain_dir.join("warm_start.blob")).unwrap())
+    );
     let _ = std::fs::remove_dir_all(&dir);
+    let _ = std::fs::remove_dir_all(&plain_dir);
 }
