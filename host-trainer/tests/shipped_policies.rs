@@ -129,6 +129,16 @@ fn shipped_race_blobs_are_their_configs_best_evaluation_and_race_as_recorded() {
     }
 }
 
+/// The lines of `policies/{name}/{file}.jsonl`, the log its run wrote (`metrics`,
+/// `imitation`).
+fn shipped_jsonl<T: serde::de::DeserializeOwned>(name: &str, file: &str) -> Vec<T> {
+    std::fs::read_to_string(root().join(format!("policies/{name}/{file}.jsonl")))
+        .unwrap()
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect()
+}
+
 fn check_race(name: &str, config_name: &str) {
     let (raw, config, iterations) =
         shipped_blob(name, &format!("host-trainer/configs/{config_name}.toml"));
@@ -136,12 +146,7 @@ fn check_race(name: &str, config_name: &str) {
         config.run.keep_best,
         "{config_name}: the stage-2 runs keep the best"
     );
-    let metrics: Vec<host_trainer::train::IterationMetrics> =
-        std::fs::read_to_string(root().join(format!("policies/{name}/metrics.jsonl")))
-            .unwrap()
-            .lines()
-            .map(|l| serde_json::from_str(l).unwrap())
-            .collect();
+    let metrics: Vec<host_trainer::train::IterationMetrics> = shipped_jsonl(name, "metrics");
     assert_eq!(
         metrics.last().map(|m| m.iteration),
         Some(config.run.iterations),
@@ -160,12 +165,7 @@ fn check_race(name: &str, config_name: &str) {
         // The warm start ended with its best-refereed round: the first evaluation (the
         // critic-only iterations leave the actor as the warm start made it) scores as that
         // round did, on the same races.
-        let rounds: Vec<host_trainer::imitation::ImitationRound> =
-            std::fs::read_to_string(root().join(format!("policies/{name}/imitation.jsonl")))
-                .unwrap()
-                .lines()
-                .map(|l| serde_json::from_str(l).unwrap())
-                .collect();
+        let rounds: Vec<host_trainer::imitation::ImitationRound> = shipped_jsonl(name, "imitation");
         let score = |s: Option<f64>, c: Option<f64>| (s.expect("refereed"), -c.expect("refereed"));
         let kept = rounds
             .iter()
