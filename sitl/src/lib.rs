@@ -15,6 +15,7 @@ pub mod bridge;
 pub mod dynamics;
 pub mod eval;
 pub mod files;
+pub mod frames;
 pub mod pilot;
 pub mod plot;
 pub mod quant;

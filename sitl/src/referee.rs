@@ -16,7 +16,7 @@
 //! Gate passes and crashes come from [`World::judge`], i.e. firmware-core's gate test and
 //! crash rules; progress comes from firmware-core's [`Centerline`] and [`ArcLength`].
 
-use crate::bridge::frames::NedState;
+use crate::frames::NedState;
 use crate::pilot::Pilot;
 use crate::world::{CrashCause, Drone, DroneStep, SpawnPoint, World};
 use firmware_core::math::Vec3;
@@ -504,7 +504,7 @@ pub trait Crew<const N: usize> {
 
 /// In-process pilots as a crew: each sees its own state and, in a race, the other drone's,
 /// as a flight controller receives them over the MAVLink bridge: in f32 NED/FRD and back
-/// ([`crate::bridge::frames`]; the attitude moves by at most 1e-7). So `sitl eval` and a
+/// ([`crate::frames`]; the attitude moves by at most 1e-7). So `sitl eval` and a
 /// lockstep race over MAVLink (`sitl race`) fly identical trajectories.
 struct Pilots<'a, const N: usize>([&'a mut dyn Pilot; N]);
 

@@ -11,9 +11,9 @@
 //! and read. The race's log holds the ground-station stream, stamped with the race's start
 //! time plus the simulated time.
 
-use super::frames::{GeoOrigin, NedState};
 use super::wire::Codec;
 use super::{AUTOPILOT_COMPONENT_ID, local_position, vehicle_heartbeat};
+use crate::frames::{GeoOrigin, NedState};
 use mavlink::dialects::common::{
     ATTITUDE_DATA, GLOBAL_POSITION_INT_DATA, MavMessage, MavSysStatusSensor, SYS_STATUS_DATA,
 };

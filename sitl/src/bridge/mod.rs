@@ -16,7 +16,7 @@
 //! 2. **Each step**, one datagram per controller: the other vehicles' states, then its own,
 //!    each as `ATTITUDE_QUATERNION` (FRD→NED attitude, FRD rates in rad/s) and
 //!    `LOCAL_POSITION_NED` (m, m/s), `time_boot_ms` = `t`, header system id = the vehicle
-//!    the state belongs to ([`frames`] has the conversions).
+//!    the state belongs to ([`crate::frames`] has the conversions).
 //! 3. The controller answers `HIL_ACTUATOR_CONTROLS` with `time_usec` = `t`·1000 (the
 //!    step's time echoed), flag `HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP`, and
 //!    `controls[0..4]` = propeller speeds of motors 0–3 in units of
@@ -32,14 +32,13 @@
 //! counted per link. A ground station link ([`gcs`]) streams the race as a vehicle would.
 
 pub mod fc;
-pub mod frames;
 pub mod gcs;
 pub mod race;
 pub mod wire;
 
+use crate::frames::NedState;
 use firmware_core::math::{Quat, Vec3};
 use firmware_core::vehicle::MotorCommand;
-use frames::NedState;
 use mavlink::dialects::common::{
     ATTITUDE_QUATERNION_DATA, COMMAND_ACK_DATA, COMMAND_LONG_DATA, HEARTBEAT_DATA,
     HIL_ACTUATOR_CONTROLS_DATA, HilActuatorControlsFlags, LOCAL_POSITION_NED_DATA, MavAutopilot,

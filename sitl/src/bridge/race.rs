@@ -3,13 +3,13 @@
 //! `sitl eval`'s. Protocol in [`super`].
 
 use super::fc::{FcConfig, FcSummary, serve};
-use super::frames::NedState;
 use super::gcs::GroundStation;
 use super::wire::{Codec, Frame, LinkStats};
 use super::{
     SIM_COMPONENT_ID, command_from_actuators, reset_command, shutdown_command, state_messages,
 };
 use crate::eval::{EvalConfig, Report};
+use crate::frames::NedState;
 use crate::pilot::PilotSpec;
 use crate::referee::{Crew, Episode, EpisodeConfig, run_crew};
 use firmware_core::vehicle::{MotorCommand, VehicleState};

@@ -1,4 +1,6 @@
-//! Frame conversions at the MAVLink bridge.
+//! Frame conversions between the simulator (ENU/FLU) and MAVLink (NED/FRD): the bridge
+//! sends states in them, and the referee hands in-process pilots states through the same
+//! round trip.
 //!
 //! The simulator and firmware-core work in **ENU/FLU**: world x east, y north, z up; body x
 //! forward, y left, z up; quaternions (w, x, y, z) map body vectors to the world. MAVLink
