@@ -10,14 +10,14 @@ it.
 
 The problem is solved by direct multiple shooting with IPOPT (CasADi): per gate-to-gate
 segment N intervals of constant acceleration and a free duration; the segment ends on the
-gate's plane with |y|, |z| <= the opening's half-size (SPEC: 0.8 m), moving through it
-front to back; z >= 0.1 m (SPEC's ground crash); the lap is periodic (the end state is the
-start state). Gate centres and headings are SPEC's (upside-down frames have y and z negated,
-which the symmetric opening test does not see).
+gate's plane with |y|, |z| <= the opening's half-size (0.8 m), moving through it
+front to back; z >= 0.1 m (the ground crash); the lap is periodic (the end state is the
+start state). Gate centres and headings are those of docs/DESIGN.md "Track" (upside-down
+frames have y and z negated, which the symmetric opening test does not see).
 
 It is a local solver, so each case is solved from several initial guesses and the best is
-kept; the spread is printed. The thrust-to-weight of the `paper` preset follows from SPEC:
-rpm_max = 14468.429·1.8, half of kf·rpm² per propeller, mass 0.027 kg.
+kept; the spread is printed. The thrust-to-weight of the `paper` preset follows from
+docs/DESIGN.md "Presets": rpm_max = 14468.429·1.8, half of kf·rpm² per propeller, mass 0.027 kg.
 
     python3 -m pip install casadi numpy
     python3 tools/min_lap_time.py                      # the paper preset, a reserve sweep

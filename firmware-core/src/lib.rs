@@ -4,7 +4,7 @@
 //! fly a trained racing policy, and everything the simulator and trainer must share with it.
 //!
 //! * [`track`]: gates, the paper's figure-8, next-gate bookkeeping, the gate-plane tests;
-//! * [`observation`]: the 17-, 20- and 30-value observations (SPEC "Observations");
+//! * [`observation`]: the 17-, 20- and 30-value observations (docs/DESIGN.md "Observations");
 //! * [`nn`] and [`policy`]: fixed-size Linear / LSTM / MLP inference and the Table 1
 //!   architectures A–G, viewing weights in place;
 //! * [`blob`]: the flash-ready weight format (postcard header, aligned payload, CRC-32);

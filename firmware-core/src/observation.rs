@@ -1,4 +1,5 @@
-//! The observation pipeline (SPEC "Observations"), shared by training and deployment.
+//! The observation pipeline (docs/DESIGN.md "Observations"), shared by training and
+//! deployment.
 //!
 //! The scales, clipping and layout are data: an [`ObservationSpec`] that every blob records,
 //! so a controller refuses a policy trained for another pipeline. The pipeline reads top to

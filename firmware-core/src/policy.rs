@@ -16,7 +16,7 @@ use crate::blob::BlobError;
 use crate::nn::{
     ACTION_DIM, LstmPolicy, LstmStackState, Mlp2, Mlp3, Mlp4, MlpPolicy, WeightReader,
 };
-use crate::observation::Observation;
+use crate::observation::{Observation, ObservationLayout};
 use serde::{Deserialize, Serialize};
 
 /// Most hidden layers an MLP head may have in a blob header.
@@ -70,6 +70,24 @@ impl TableRow {
             Self::E => 'E',
             Self::F => 'F',
             Self::G => 'G',
+        }
+    }
+
+    /// The row whose letter is `letter` (either case): the one table from a letter to a
+    /// row, and so to its [`Architecture::table1`], that the trainer, its command line and
+    /// the tools share. `None` outside A-G.
+    pub fn from_letter(letter: char) -> Option<Self> {
+        let letter = letter.to_ascii_uppercase();
+        Self::ALL.into_iter().find(|r| r.letter() == letter)
+    }
+
+    /// What the row's policy observes (paper): the 17 time-trial values (A), plus the
+    /// opponent's relative position (B), or the full opponent state (C-G).
+    pub const fn observation_layout(self) -> ObservationLayout {
+        match self {
+            Self::A => ObservationLayout::TimeTrial17,
+            Self::B => ObservationLayout::OpponentPosition20,
+            _ => ObservationLayout::FullOpponent30,
         }
     }
 }
@@ -382,6 +400,31 @@ impl<'w> Policy<'w> {
             (Self::F(p), PolicyState::Lstm2(s)) => Some(p.step(obs.as_array::<30>()?, s)),
             (Self::G(p), PolicyState::Lstm2(s)) => Some(p.step(obs.as_array::<30>()?, s)),
             _ => None,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The one letter table: every row's letter leads back to it in either case, a letter
+    /// outside A-G to none, and a row observes as many values as its architecture takes.
+    #[test]
+    fn row_letters_and_layouts_agree_with_the_architectures() {
+        for row in TableRow::ALL {
+            assert_eq!(TableRow::from_letter(row.letter()), Some(row));
+            assert_eq!(
+                TableRow::from_letter(row.letter().to_ascii_lowercase()),
+                Some(row)
+            );
+            assert_eq!(
+                row.observation_layout().dim(),
+                usize::from(Architecture::table1(row).obs_dim)
+            );
+        }
+        for c in ['H', 'z', '1', ' '] {
+            assert_eq!(TableRow::from_letter(c), None);
         }
     }
 }

@@ -89,10 +89,10 @@ impl Gate {
 /// Number of gates of the figure-8 (one lap is g0 → … → g5 → g0).
 pub const FIGURE_EIGHT_GATES: usize = 6;
 
-/// The paper's life-size figure-8 (SPEC "Track"): centres at z = 1 m, frames from the
+/// The paper's life-size figure-8 (docs/DESIGN.md "Track"): centres at z = 1 m, frames from the
 /// authors' code (Frenet frames of a periodic cubic spline through the centres with uniform
-/// knots, g0 and g3 overridden; g1 and g2 are upside down). SPEC gives the components to four
-/// digits (0.9403, 0.3404), whose norm is 1.000018; they are stored here divided by that norm,
+/// knots, g0 and g3 overridden; g1 and g2 are upside down). They are known to four digits
+/// (0.9403, 0.3404), whose norm is 1.000018; they are stored here divided by that norm,
 /// so every frame is a unit quaternion to f32 precision and rotations keep lengths.
 pub static FIGURE_EIGHT: [Gate; FIGURE_EIGHT_GATES] = [
     Gate {
@@ -214,7 +214,7 @@ pub const MAX_CENTERLINE_GATES: usize = 16;
 
 /// The racing line of a track: the periodic cubic spline through the gate centres with
 /// uniform knots, gate `k` at parameter `k` (the construction of the paper's code, whose
-/// tangents give the gate headings of SPEC). Parameter `s ∈ [0, n)` runs once around a lap
+/// tangents give the gates' headings). Parameter `s ∈ [0, n)` runs once around a lap
 /// of `n` gates; segment `k` joins gate `k` to gate `k + 1`.
 ///
 /// For the figure-8 the line is 68.66 m long.
@@ -349,7 +349,7 @@ pub const ARC_LENGTH_SAMPLES: usize = 32;
 /// Arc length along a [`Centerline`] as a function of its parameter: a table of
 /// [`ARC_LENGTH_SAMPLES`] chords per segment, each integrated with 8 sub-chords and
 /// interpolated linearly (error below 1 mm on the figure-8). The referee measures a drone's
-/// progress along the track with it (SPEC "Metrics": laps·length + arc length).
+/// progress along the track with it (docs/DESIGN.md "Metrics": laps·length + arc length).
 #[derive(Clone, Copy, Debug)]
 pub struct ArcLength {
     /// `table[k][j]`: arc length from gate 0 to parameter `k + j / ARC_LENGTH_SAMPLES` (m).
@@ -471,7 +471,7 @@ impl GateProgress {
     }
 }
 
-/// The crash rules of a race (SPEC "Track"), besides gate collisions.
+/// The crash rules of a race (docs/DESIGN.md "Gate rules"), besides gate collisions.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CrashRules {
     /// A drone below this height has hit the ground (m). Paper: 0.1.
@@ -526,7 +526,7 @@ mod tests {
     }
 
     #[test]
-    fn figure_eight_frames_are_the_spec_table() {
+    fn figure_eight_frames_are_the_design_table() {
         let t = Track::figure_eight();
         let headings = [0.0, -39.81, -140.19, 180.0, -140.19, -39.81];
         for (i, (g, h)) in t.gates().iter().zip(headings).enumerate() {
@@ -673,7 +673,7 @@ mod tests {
     fn centerline_is_the_papers_spline() {
         let t = Track::figure_eight();
         let c = Centerline::new(&t);
-        // SPEC: "The centreline is about 68.7 m long" (scipy's periodic CubicSpline: 68.656).
+        // docs/DESIGN.md "Track": 68.66 m (scipy's periodic CubicSpline: 68.656).
         assert!((c.length_m() - 68.656).abs() < 0.02, "{}", c.length_m());
         for (k, g) in t.gates().iter().enumerate() {
             assert!(

@@ -13,12 +13,15 @@ use burn::tensor::Device;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::config::TrainConfig;
-use host_trainer::env::{EnvConfig, OBS_DIM, TrainEnv};
-use host_trainer::model::{Actor, Critic, init_rng};
-use host_trainer::ppo::{Learner, Rollout};
+use host_trainer::model::{Actor, Critic};
+use host_trainer::nets::{PolicyNet, ValueNet};
+use host_trainer::ppo::Learner;
+use host_trainer::rng::init_rng;
+use host_trainer::rollout::Rollout;
 use host_trainer::train::{RunOptions, run};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use sitl::env::{EnvConfig, OBS_DIM, VecEnv};
 
 const STAGE1: &str = include_str!("../configs/stage1.toml");
 
@@ -26,14 +29,14 @@ fn learner() -> Learner {
     let device = Device::flex().autodiff();
     let arch = Architecture::table1(TableRow::A);
     let mut rng = init_rng(1);
-    let actor = Actor::new(&arch, 1.0, &mut rng, &device);
-    let critic = Critic::new(&arch, &mut rng, &device);
+    let actor = Actor::fresh(&arch, 1.0, &mut rng, &device);
+    let critic = Critic::fresh(&arch, &mut rng, &device);
     Learner::new(actor, critic, 1e-4, device)
 }
 
 /// A rollout of `envs × steps` from the environment with random actions.
 fn rollout(envs: usize, steps: usize) -> Rollout {
-    let mut env = TrainEnv::new(EnvConfig::paper_along_track(envs, 0));
+    let mut env = VecEnv::time_trial(EnvConfig::paper_along_track(envs, 0));
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut r = Rollout::new(envs, OBS_DIM);
     for _ in 0..steps {

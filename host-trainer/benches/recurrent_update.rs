@@ -10,9 +10,11 @@ use burn::tensor::Device;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::config::TrainConfig;
-use host_trainer::model::init_rng;
-use host_trainer::ppo::{RecurrentLearner, Rollout};
+use host_trainer::nets::{PolicyNet, ValueNet};
+use host_trainer::ppo::RecurrentLearner;
 use host_trainer::recurrent::{RecurrentActor, RecurrentCritic};
+use host_trainer::rng::init_rng;
+use host_trainer::rollout::Rollout;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -44,8 +46,8 @@ fn update(c: &mut Criterion) {
     let device = Device::flex().autodiff();
     let arch = Architecture::table1(TableRow::G);
     let mut rng = init_rng(1);
-    let actor = RecurrentActor::new(&arch, 1.0, &mut rng, &device);
-    let critic = RecurrentCritic::new(&arch, &mut rng, &device);
+    let actor = RecurrentActor::fresh(&arch, 1.0, &mut rng, &device);
+    let critic = RecurrentCritic::fresh(&arch, &mut rng, &device);
     let mut learner = RecurrentLearner::new(actor, critic, 1e-5, device);
     let batch = learner.prepare(&rollout(), &p);
     let envs: Vec<usize> = (0..SEQUENCES).collect();

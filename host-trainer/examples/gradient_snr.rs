@@ -21,14 +21,16 @@
 use burn::optim::SgdConfig;
 use firmware_core::policy::Architecture;
 use firmware_core::policy::Policy;
+use host_trainer::batch::Batch;
 use host_trainer::config::{Guard, TrainConfig};
-use host_trainer::env::{OBS_DIM, TrainEnv};
-use host_trainer::ppo::{Batch, Rollout};
-use host_trainer::train::{
-    architecture, checkpoint_learner, collect_rollout, env_config, measured_return,
-};
+use host_trainer::guard::measured_return;
+use host_trainer::nets::PolicyNet;
+use host_trainer::rollout::Rollout;
+use host_trainer::rollout::collect_rollout;
+use host_trainer::run_dir::checkpoint_learner;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use sitl::env::{OBS_DIM, VecEnv};
 use std::path::PathBuf;
 
 fn dot(a: &[f32], b: &[f32]) -> f64 {
@@ -50,7 +52,7 @@ fn main() {
     if let Some(l) = lambda {
         config.ppo.lambda = l;
     }
-    let (_, arch) = architecture(&config).expect("a row-A config");
+    let arch = config.architecture().expect("a row-A config");
     let payload = learner.actor.payload();
     let policy = Policy::from_payload(&arch, &payload).expect("the actor as a blob");
     let std = learner.actor.std();
@@ -143,7 +145,7 @@ fn main() {
     let mut noise_rng = ChaCha8Rng::seed_from_u64(99);
     let payload = learner.actor.payload();
     let noise: Vec<f32> = (0..payload.len())
-        .map(|_| host_trainer::train::normal(&mut noise_rng))
+        .map(|_| host_trainer::rng::normal(&mut noise_rng))
         .collect();
     for eps in [1e-5, 3e-5, 1e-4, 3e-4, 1e-3] {
         let mut row = Vec::new();
@@ -229,7 +231,7 @@ fn action_change(a: &[f32], b: &[f32], arch: &Architecture, obs: &[f32]) {
 /// again to leave the spawn states behind (the update sees envs mid-flight).
 fn fresh_rollout(policy: &Policy<'_>, std: &[f32], config: &TrainConfig, seed: u64) -> Rollout {
     let (n, steps) = (config.env.num_envs, config.ppo.steps_per_env);
-    let mut env = TrainEnv::new(env_config(config, seed).expect("env config"));
+    let mut env = VecEnv::time_trial(config.env_config(seed).expect("env config"));
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut rollout = Rollout::new(n, OBS_DIM);
     for _ in 0..2 {

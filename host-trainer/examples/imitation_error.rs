@@ -47,7 +47,7 @@ fn main() -> Result<(), String> {
     let policy = student_blob.policy().map_err(|e| e.to_string())?;
     let spec = teacher_blob.header().observation;
 
-    let mut env = host_trainer::train::make_env(&config, 7).map_err(|e| e.to_string())?;
+    let mut env = config.make_env(7).map_err(|e| e.to_string())?;
     let (n, dim) = (env.num_envs(), env.obs_dim());
     let (mut labels, mut actions) = (vec![0.0f32; n * ACTION_DIM], vec![0.0f32; n * ACTION_DIM]);
     let mut memory = vec![policy.initial_state(); n];

@@ -1,10 +1,18 @@
 //! Training configuration: one TOML file per run (`host-trainer/configs/*.toml`), every
 //! field with its unit and the paper's value beside ours. Unknown keys are errors, so a typo
 //! cannot silently fall back to a default.
+//!
+//! The paper's values live in code too: every section's `Default` is the paper's stage 1
+//! (RSL-RL's PPO settings), [`TrainConfig::paper`] is the whole paper stage-1 run
+//! (`configs/stage1_paper.toml`) and [`TrainConfig::ours`] this project's stage-1 pipeline
+//! (`configs/stage1.toml`); a test holds each preset equal to its TOML file.
 
-use crate::env::RewardWeights;
 use serde::{Deserialize, Serialize};
+use sitl::env::{Competition, RewardWeights};
 use std::path::Path;
+
+mod presets;
+mod validate;
 
 /// A whole training run.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -16,7 +24,7 @@ pub struct TrainConfig {
     pub env: EnvSection,
     /// PPO hyper-parameters.
     pub ppo: PpoConfig,
-    /// Reward weights (SPEC "Rewards").
+    /// Reward weights (docs/DESIGN.md "Rewards").
     #[serde(default)]
     pub reward: RewardWeights,
     /// Optional imitation warm start before PPO (not in the paper).
@@ -30,8 +38,9 @@ pub struct TrainConfig {
     pub race: Option<RaceSection>,
 }
 
-/// The stage-2 race (SPEC "Learning", paper section 4.2): the opponent, a frozen stage-1
-/// blob flown by firmware-core's controller, and the competition reward added to SPEC's.
+/// The stage-2 race (docs/DESIGN.md "Learning", paper section 4.2): the opponent, a frozen
+/// stage-1 blob flown by firmware-core's controller, and the competition reward added to the
+/// paper's.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RaceSection {
@@ -40,7 +49,7 @@ pub struct RaceSection {
     pub opponent: String,
     /// "dense" (eq. 6; rows B, C, E-G), "sparse" (eq. 7; row D), or "lead" (not the paper's:
     /// the lead in track progress, which eq. 6's body-frame measure can be gamed around).
-    pub competition: crate::env::Competition,
+    pub competition: Competition,
     /// Weight of the competition reward (× dt like every term). Paper: 0.5.
     #[serde(default = "default_competition_weight")]
     pub competition_weight: f32,
@@ -254,7 +263,8 @@ pub struct EnvSection {
     pub stage1_fraction: f32,
 }
 
-/// PPO hyper-parameters (SPEC "Learning"; defaults are RSL-RL's and the paper's).
+/// PPO hyper-parameters (docs/DESIGN.md "Learning"; the defaults are RSL-RL's and the paper's
+/// stage 1).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PpoConfig {
@@ -380,153 +390,8 @@ impl TrainConfig {
     /// Parses and validates TOML text.
     pub fn parse(text: &str) -> Result<Self, ConfigError> {
         let c: Self = toml::from_str(text).map_err(|e| ConfigError::Parse(e.to_string()))?;
-        c.validate()?;
+        validate::validate(&c)?;
         Ok(c)
-    }
-
-    fn validate(&self) -> Result<(), ConfigError> {
-        let bad = |m: String| Err(ConfigError::Invalid(m));
-        if self.run.name.is_empty() || self.run.name.len() > 32 {
-            return bad("run.name must be 1 to 32 bytes".into());
-        }
-        if !('A'..='G').contains(&self.run.row) {
-            return bad(format!(
-                "run.row '{}' is not a Table 1 row A-G",
-                self.run.row
-            ));
-        }
-        if self.run.iterations == 0 || self.run.checkpoint_every == 0 || self.run.eval_every == 0 {
-            return bad("run.iterations, checkpoint_every and eval_every must be positive".into());
-        }
-        if self.run.eval_races == 0 {
-            return bad("run.eval_races must be positive".into());
-        }
-        if sitl::dynamics::Preset::by_name(&self.env.preset).is_none() {
-            return bad(format!(
-                "env.preset '{}' (paper, nominal, realistic)",
-                self.env.preset
-            ));
-        }
-        let race = self.race.is_some();
-        match (self.env.spawn.as_str(), race) {
-            ("stage1" | "along-track", false) | ("stage2", true) => {}
-            (s, false) => return bad(format!("env.spawn '{s}' (stage1, along-track)")),
-            (s, true) => {
-                return bad(format!(
-                    "env.spawn '{s}': a [race] starts at SPEC's stage-2 spawn, write \"stage2\""
-                ));
-            }
-        }
-        if (self.run.row == 'A') == race {
-            return bad(format!(
-                "run.row '{}' {}",
-                self.run.row,
-                if race {
-                    "is the time-trial row; a [race] trains rows B to G"
-                } else {
-                    "observes an opponent and needs a [race] section"
-                }
-            ));
-        }
-        if let Some(r) = &self.race {
-            if r.opponent.is_empty() {
-                return bad("race.opponent must name a blob".into());
-            }
-            if !(r.competition_weight.is_finite() && r.competition_weight >= 0.0) {
-                return bad("race.competition_weight must be finite and >= 0".into());
-            }
-            let sparse = r.competition == crate::env::Competition::Sparse;
-            if (self.run.row == 'D') != sparse {
-                return bad(format!(
-                    "run.row '{}' with the {} competition reward: Table 1's row D is the sparse one, B, C and E-G the dense",
-                    self.run.row,
-                    if sparse { "sparse" } else { "dense" }
-                ));
-            }
-        }
-        if !(self.env.velocity_scale_mps.is_finite() && self.env.velocity_scale_mps > 0.0) {
-            return bad("env.velocity_scale_mps must be positive".into());
-        }
-        for w in self.warm_start.iter().flat_map(WarmStart::stages) {
-            if w.rounds == 0
-                || w.steps_per_env == 0
-                || w.epochs == 0
-                || w.minibatch == 0
-                || w.max_samples == 0
-            {
-                return bad(
-                    "warm_start.rounds, steps_per_env, epochs, minibatch and max_samples (and \
-                     every refine stage's) must be positive"
-                        .into(),
-                );
-            }
-            if !(w.learning_rate > 0.0 && w.teacher_cruise_mps > 0.0 && w.student_noise_std >= 0.0)
-            {
-                return bad(
-                    "warm_start.learning_rate and teacher_cruise_mps must be positive".into(),
-                );
-            }
-            if w.learning_rate_final
-                .is_some_and(|l| l.is_nan() || l <= 0.0)
-            {
-                return bad(
-                    "warm_start.learning_rate_final (and every refine stage's) must be positive"
-                        .into(),
-                );
-            }
-            if !(0.0..=1.0).contains(&w.teacher_share_start) {
-                return bad("warm_start.teacher_share_start must be in [0, 1]".into());
-            }
-        }
-        if let Some(g) = &self.guard {
-            if g.envs == 0 || g.steps == 0 {
-                return bad("guard.envs and guard.steps must be positive".into());
-            }
-        }
-        if !(0.0..=1.0).contains(&self.env.stage1_fraction) {
-            return bad("env.stage1_fraction must be in [0, 1]".into());
-        }
-        if !(0.0..=20.0).contains(&self.env.spawn_speed_mps) {
-            return bad("env.spawn_speed_mps must be in [0, 20]".into());
-        }
-        if self.env.num_envs == 0 || self.env.episode_s.is_nan() || self.env.episode_s <= 0.0 {
-            return bad("env.num_envs and env.episode_s must be positive".into());
-        }
-        let p = &self.ppo;
-        if p.steps_per_env == 0 || p.epochs == 0 || p.minibatches == 0 {
-            return bad("ppo.steps_per_env, epochs and minibatches must be positive".into());
-        }
-        if !(self.env.num_envs * p.steps_per_env).is_multiple_of(p.minibatches) {
-            return bad(format!(
-                "the rollout ({} envs x {} steps) does not split into {} equal minibatches",
-                self.env.num_envs, p.steps_per_env, p.minibatches
-            ));
-        }
-        let unit = |v: f32| (0.0..=1.0).contains(&v);
-        if !(unit(p.gamma) && unit(p.lambda) && p.clip > 0.0 && p.learning_rate > 0.0) {
-            return bad(
-                "ppo.gamma and lambda must be in [0, 1], clip and learning_rate > 0".into(),
-            );
-        }
-        if !(p.init_std.is_finite() && p.init_std > 0.0 && p.max_grad_norm > 0.0) {
-            return bad("ppo.init_std and max_grad_norm must be positive and finite".into());
-        }
-        let finite_nonneg = |v: f32| v.is_finite() && v >= 0.0;
-        if !(finite_nonneg(p.value_coef) && finite_nonneg(p.entropy_coef)) {
-            return bad("ppo.value_coef and entropy_coef must be finite and >= 0".into());
-        }
-        if p.desired_kl.is_some_and(|k| !(k.is_finite() && k > 0.0)) {
-            return bad("ppo.desired_kl must be positive".into());
-        }
-        if !(p.min_learning_rate > 0.0 && p.min_learning_rate <= p.learning_rate) {
-            return bad("ppo.min_learning_rate must be in (0, learning_rate]".into());
-        }
-        if p.critic_learning_rate
-            .is_some_and(|r| !(r.is_finite() && r > 0.0))
-        {
-            return bad("ppo.critic_learning_rate must be positive".into());
-        }
-        Ok(())
     }
 
     /// A stable 64-bit hash of the configuration (FNV-1a of its canonical TOML), recorded in
@@ -544,130 +409,5 @@ impl TrainConfig {
     /// Samples per iteration (envs × steps per env).
     pub fn samples_per_iteration(&self) -> usize {
         self.env.num_envs * self.ppo.steps_per_env
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    const STAGE1: &str = include_str!("../configs/stage1.toml");
-    const PAPER: &str = include_str!("../configs/stage1_paper.toml");
-
-    #[test]
-    fn every_config_in_configs_parses() {
-        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
-        let mut n = 0;
-        for entry in std::fs::read_dir(&dir).unwrap() {
-            let path = entry.unwrap().path();
-            if path.extension().is_some_and(|e| e == "toml") {
-                TrainConfig::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-                n += 1;
-            }
-        }
-        assert!(n >= 6, "{n} configs");
-    }
-
-    #[test]
-    fn shipped_configs_parse() {
-        let ours = TrainConfig::parse(STAGE1).unwrap();
-        let paper = TrainConfig::parse(PAPER).unwrap();
-        // The paper's settings stay reachable.
-        assert_eq!(paper.env.num_envs, 8192);
-        assert_eq!(paper.env.spawn, "stage1");
-        assert_eq!(paper.ppo.steps_per_env, 100);
-        assert_eq!((paper.ppo.epochs, paper.ppo.minibatches), (5, 4));
-        assert_eq!(paper.ppo.learning_rate, 1e-4);
-        assert_eq!(paper.ppo.entropy_coef, 0.01);
-        assert_eq!(paper.reward, RewardWeights::default());
-        assert_ne!(ours.hash(), paper.hash());
-        assert_eq!(ours.hash(), TrainConfig::parse(STAGE1).unwrap().hash());
-    }
-
-    #[test]
-    fn warm_start_schedules() {
-        let text = include_str!("../configs/stage2_G.toml");
-        let mut warm = TrainConfig::parse(text).unwrap().warm_start.unwrap();
-        warm.rounds = 11;
-        warm.learning_rate = 1e-3;
-        warm.learning_rate_final = None;
-        warm.teacher_share_start = 1.0;
-        // The default: the teacher's share falls 1 -> 0 over the first half, the rate is flat.
-        let shares: Vec<f64> = (0..11).map(|r| warm.teacher_share(r)).collect();
-        assert_eq!(&shares[..3], &[1.0, 0.8, 0.6]);
-        assert!(shares[5..].iter().all(|s| *s == 0.0), "{shares:?}");
-        assert!((0..11).all(|r| warm.round_learning_rate(r) == 1e-3));
-        // A refinement: no teacher, the rate geometric from 1e-3 to 1e-5 (1e-4 half-way).
-        warm.teacher_share_start = 0.0;
-        warm.learning_rate_final = Some(1e-5);
-        assert!((0..11).all(|r| warm.teacher_share(r) == 0.0));
-        let rate = |r| warm.round_learning_rate(r);
-        assert!((rate(0) - 1e-3).abs() < 1e-12);
-        assert!((rate(5) - 1e-4).abs() < 1e-12);
-        assert!((rate(10) - 1e-5).abs() < 1e-12);
-        assert!(
-            (rate(99) - 1e-5).abs() < 1e-12,
-            "past the last round it stays at the final rate"
-        );
-    }
-
-    #[test]
-    fn refine_stages_inherit_the_teacher_and_start_with_the_student_flying() {
-        let c = TrainConfig::parse(include_str!("../configs/stage2_B.toml")).unwrap();
-        let warm = c.warm_start.unwrap();
-        let stages = warm.stages();
-        assert_eq!(stages.len(), 3);
-        assert_eq!(
-            stages.iter().map(|s| s.rounds).collect::<Vec<_>>(),
-            [30, 12, 8]
-        );
-        assert_eq!(stages[0].teacher_share(0), 1.0);
-        for s in &stages[1..] {
-            assert_eq!(s.teacher_share(0), 0.0);
-            assert_eq!(s.teacher_blob, warm.teacher_blob);
-            assert_eq!(s.minibatch, warm.minibatch);
-            assert_eq!(s.student_noise_std, warm.student_noise_std);
-            assert!(s.refine.is_empty() && s.student.is_none());
-        }
-        assert_eq!(stages[2].steps_per_env, 750);
-        assert!((stages[2].round_learning_rate(7) - 3e-5).abs() < 1e-12);
-        // A bad refine stage is refused like a bad warm start.
-        let text = include_str!("../configs/stage2_B.toml").replacen(
-            "rounds = 8\nsteps_per_env = 750",
-            "rounds = 8\nsteps_per_env = 0",
-            1,
-        );
-        assert!(matches!(
-            TrainConfig::parse(&text),
-            Err(ConfigError::Invalid(_))
-        ));
-    }
-
-    #[test]
-    fn typos_and_bad_values_are_errors() {
-        let typo = STAGE1.replace("entropy_coef", "entropy_cof");
-        assert!(matches!(
-            TrainConfig::parse(&typo),
-            Err(ConfigError::Parse(_))
-        ));
-        let bad = STAGE1.replace("preset = \"paper\"", "preset = \"moon\"");
-        let e = TrainConfig::parse(&bad).unwrap_err().to_string();
-        assert!(e.contains("moon"), "{e}");
-        let stage2 = include_str!("../configs/stage2_B.toml");
-        for bad in [
-            "learning_rate = 1e-3\nlearning_rate_final = -1.0",
-            "learning_rate = 1e-3\nteacher_share_start = 1.5",
-        ] {
-            let t = stage2.replacen("learning_rate = 1e-3", bad, 1);
-            assert!(
-                matches!(TrainConfig::parse(&t), Err(ConfigError::Invalid(_))),
-                "{bad}"
-            );
-        }
-        let bad = STAGE1.replace("gamma = 0.99", "gamma = 1.5");
-        assert!(matches!(
-            TrainConfig::parse(&bad),
-            Err(ConfigError::Invalid(_))
-        ));
     }
 }

@@ -4,19 +4,24 @@
 //! baseline and the student visits. Round `k` executes the teacher's action with
 //! probability β_k (1 → 0 over the first half of the rounds) and the student's noisy action
 //! otherwise; every visited state is labelled with the teacher's action, and the data of all
-//! rounds (up to `max_samples`) is fitted by mean squared error.
+//! rounds (up to `max_samples`) is fitted by mean squared error. Both students, the
+//! feed-forward one ([`imitate`]) and the recurrent one ([`imitate_recurrent`]), fly their
+//! rounds through one collector ([`collect_round`]); they differ in how they fit.
 //!
-//! Why: with SPEC's reward at this machine's budget, PPO from a random actor learns to hover
+//! Why: with the paper's reward (docs/DESIGN.md "Rewards") at this machine's budget, PPO from a random actor learns to hover
 //! and then stays there (docs/TRAINING.md has the runs). A student that already flies the
 //! track sees the progress reward from its first PPO iteration.
 
 use crate::config::{TrainConfig, WarmStart};
-use crate::env::TrainEnv;
+use crate::error::TrainError;
+use crate::grads::{transfer_gradients, weighted_sum};
 use crate::model::{Actor, values};
-use crate::recurrent::RecurrentActor;
-use crate::train::{TrainError, make_env};
+use crate::nets::PolicyNet;
+use crate::ppo::adam;
+use crate::recurrent::{LstmState, RecurrentActor};
+use crate::rng::normal;
 use burn::module::Module;
-use burn::optim::GradientsParams;
+use burn::optim::{GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::baseline::BaselineController;
 use firmware_core::nn::ACTION_DIM;
@@ -28,6 +33,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use sitl::dynamics::Preset;
+use sitl::env::{EnvStats, VecEnv};
 
 /// One DAgger round, a line of `imitation.jsonl`.
 #[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
@@ -58,7 +64,7 @@ pub struct ImitationRound {
 
 /// An actor the warm start can train: the feed-forward one by [`imitate`], the recurrent
 /// one by [`imitate_recurrent`].
-pub trait Imitate: crate::ppo::PolicyNet {
+pub trait Imitate: PolicyNet {
     /// Runs the warm start on `self` and returns the student with the rounds' statistics.
     fn imitate(
         self,
@@ -115,7 +121,7 @@ fn forward_payload(
 }
 
 /// A copy of `actor` (σ kept) holding `payload`, with parameters of its own.
-fn actor_holding<A: crate::ppo::PolicyNet>(
+fn actor_holding<A: PolicyNet>(
     actor: &A,
     arch: &Architecture,
     payload: &[f32],
@@ -128,7 +134,7 @@ fn actor_holding<A: crate::ppo::PolicyNet>(
 /// The forward network of one regression step: the actor itself, or under
 /// `quantization_aware` a copy on its int8 grid, whose gradients [`to_latent`] moves onto
 /// the actor (the straight-through estimator: the rounding's gradient taken as 1).
-fn forward_actor<A: crate::ppo::PolicyNet>(
+fn forward_actor<A: PolicyNet>(
     actor: &A,
     arch: &Architecture,
     warm: &WarmStart,
@@ -146,14 +152,14 @@ fn forward_actor<A: crate::ppo::PolicyNet>(
 }
 
 /// The gradients of `forward` (from [`forward_actor`]) as the actor's.
-fn to_latent<A: crate::ppo::PolicyNet>(
+fn to_latent<A: PolicyNet>(
     forward: &A,
     grads: GradientsParams,
     actor: &A,
     warm: &WarmStart,
 ) -> GradientsParams {
     if warm.quantization_aware {
-        crate::ppo::transfer_gradients(forward, grads, actor)
+        transfer_gradients(forward, grads, actor)
     } else {
         grads
     }
@@ -161,7 +167,7 @@ fn to_latent<A: crate::ppo::PolicyNet>(
 
 /// The student a stage ends with: under `quantization_aware` the actor moved onto its int8
 /// grid, so that its f32 and int8 blobs hold the same policy.
-fn end_of_stage<A: crate::ppo::PolicyNet>(
+fn end_of_stage<A: PolicyNet>(
     actor: A,
     arch: &Architecture,
     warm: &WarmStart,
@@ -177,12 +183,168 @@ fn end_of_stage<A: crate::ppo::PolicyNet>(
 fn set_up(
     config: &TrainConfig,
     warm: &WarmStart,
-) -> Result<(Teacher, TrainEnv, ChaCha8Rng), TrainError> {
+) -> Result<(Teacher, VecEnv, ChaCha8Rng), TrainError> {
     let teacher = Teacher::of(config, warm)?;
-    let env = make_env(config, config.run.seed ^ 0x0da6_9e12)?;
+    let env = config.make_env(config.run.seed ^ 0x0da6_9e12)?;
     let mut rng = ChaCha8Rng::seed_from_u64(config.run.seed);
     rng.set_stream(u64::MAX - 3);
     Ok((teacher, env, rng))
+}
+
+/// Who labels the states of a warm start.
+enum Teacher {
+    /// The classical baseline at a cruise speed.
+    Baseline(Box<BaselineController<'static>>),
+    /// A time-trial blob's mean, observing through its own spec.
+    Blob {
+        policy: Box<Policy<'static>>,
+        spec: firmware_core::observation::ObservationSpec,
+    },
+}
+
+impl Teacher {
+    fn of(config: &TrainConfig, warm: &WarmStart) -> Result<Self, TrainError> {
+        let Some(path) = &warm.teacher_blob else {
+            let preset = config.preset().unwrap_or_else(|_| Preset::paper());
+            let mut c = sitl::pilot::baseline_config_for(&preset);
+            c.cruise_speed_mps = warm.teacher_cruise_mps;
+            return Ok(Self::Baseline(Box::new(BaselineController::new(
+                c,
+                Track::figure_eight(),
+            ))));
+        };
+        let raw = std::fs::read(path).map_err(|e| {
+            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
+        })?;
+        // Parsed once; the policy views the weights in place for the rest of the process.
+        let bytes = sitl::env::interned(&firmware_core::blob::AlignedBytes::new(&raw));
+        let blob = firmware_core::blob::Blob::parse(bytes.as_bytes()).map_err(|e| {
+            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
+        })?;
+        let policy = blob.policy().map_err(|e| {
+            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
+        })?;
+        if policy.is_recurrent() || blob.header().observation.layout.needs_opponent() {
+            return Err(TrainError::Unsupported(format!(
+                "warm_start.teacher_blob '{path}': the teacher must be a feed-forward time-trial policy"
+            )));
+        }
+        Ok(Self::Blob {
+            policy: Box::new(policy),
+            spec: blob.header().observation,
+        })
+    }
+
+    /// The teacher's actions for every env of `env` now.
+    fn label(&self, env: &VecEnv, out: &mut [f32]) {
+        match self {
+            Self::Baseline(b) => env.teacher_actions(b, out),
+            Self::Blob { policy, spec } => env.policy_actions(policy, spec, out),
+        }
+    }
+}
+
+/// What one DAgger round flew: the states, the teacher's labels for them and the episode
+/// boundaries, time-major (`[step][env]`).
+struct Round {
+    obs: Vec<f32>,
+    labels: Vec<f32>,
+    /// 0 where the env's episode ended at the step before (the student's state was zeroed
+    /// there), else 1.
+    keep: Vec<f32>,
+}
+
+/// The round collector both students share: `steps` steps of every env of `env`, each
+/// executed action the teacher's with probability `beta` and otherwise the student's mean
+/// (`policy`, through firmware-core, its recurrent state following the flight and zeroed at
+/// episode ends) plus `noise_std` Gaussian noise, all drawn from `rng`. Returns the round and
+/// the share of teacher actions.
+#[allow(clippy::too_many_arguments)]
+fn collect_round(
+    env: &mut VecEnv,
+    teacher: &Teacher,
+    policy: &Policy<'_>,
+    beta: f64,
+    steps: usize,
+    noise_std: f32,
+    rng: &mut ChaCha8Rng,
+) -> Result<(Round, f64), TrainError> {
+    let (n, obs_dim) = (env.num_envs(), env.obs_dim());
+    let mut memory = vec![policy.initial_state(); n];
+    let mut labels = vec![0.0f32; n * ACTION_DIM];
+    let mut executed = vec![0.0f32; n * ACTION_DIM];
+    let mut previous_done = vec![false; n];
+    let mut round = Round {
+        obs: Vec::with_capacity(steps * n * obs_dim),
+        labels: Vec::with_capacity(steps * n * ACTION_DIM),
+        keep: Vec::with_capacity(steps * n),
+    };
+    let mut from_teacher = 0usize;
+    for _ in 0..steps {
+        let obs = env.observations();
+        teacher.label(env, &mut labels);
+        for e in 0..n {
+            let out = &mut executed[e * ACTION_DIM..(e + 1) * ACTION_DIM];
+            // The student steps every time, so its state follows the flight.
+            let mean = Observation::from_values(&obs[e * obs_dim..(e + 1) * obs_dim])
+                .and_then(|o| policy.act(&o, &mut memory[e]))
+                .ok_or_else(|| {
+                    TrainError::Unsupported(format!(
+                        "imitation: the student does not take the environment's {obs_dim} observations"
+                    ))
+                })?;
+            if rng.random::<f64>() < beta {
+                out.copy_from_slice(&labels[e * ACTION_DIM..(e + 1) * ACTION_DIM]);
+                from_teacher += 1;
+            } else {
+                for k in 0..ACTION_DIM {
+                    out[k] = mean[k] + noise_std * normal(rng);
+                }
+            }
+        }
+        round.obs.extend_from_slice(obs);
+        round.labels.extend_from_slice(&labels);
+        round
+            .keep
+            .extend(previous_done.iter().map(|d| if *d { 0.0 } else { 1.0 }));
+        env.step(&executed)
+            .map_err(|e| TrainError::Unsupported(e.to_string()))?;
+        previous_done.copy_from_slice(env.dones());
+        for (m, _) in memory.iter_mut().zip(env.dones()).filter(|(_, d)| **d) {
+            m.clear();
+        }
+    }
+    Ok((round, from_teacher as f64 / (n * steps).max(1) as f64))
+}
+
+/// The log line of round `round` (0-based): its teacher share, data, fit and what the
+/// executed mixture flew (`stats`, steps of `dt_s`).
+fn round_line(
+    round: u32,
+    teacher_share: f64,
+    samples: usize,
+    (mse, mse_first_epoch): (f64, f64),
+    stats: &EnvStats,
+    dt_s: f32,
+) -> ImitationRound {
+    let sim_s = stats.steps as f64 * f64::from(dt_s);
+    ImitationRound {
+        round: round + 1,
+        teacher_share,
+        samples,
+        mse,
+        mse_first_epoch,
+        gates_per_s: stats.gates_passed as f64 / sim_s.max(1e-9),
+        crash_rate_per_s: stats.crashes as f64 / sim_s.max(1e-9),
+        ..ImitationRound::default()
+    }
+}
+
+/// The student a round flies: its weights (on the int8 grid under `quantization_aware`)
+/// viewed by firmware-core.
+fn flying_policy<'w>(payload: &'w [f32], arch: &Architecture) -> Result<Policy<'w>, TrainError> {
+    Policy::from_payload(arch, payload)
+        .map_err(|e| TrainError::Unsupported(format!("imitation: {e}")))
 }
 
 /// Runs the warm start on `actor` and returns the student (σ unchanged) with the rounds'
@@ -197,43 +359,26 @@ pub fn imitate(
     log: &mut dyn FnMut(&ImitationRound, &[f32]),
 ) -> Result<(Actor, Vec<ImitationRound>), TrainError> {
     let (teacher, mut env, mut rng) = set_up(config, warm)?;
-    let (n, obs_dim) = (env.num_envs(), env.obs_dim());
-    let mut optim = crate::ppo::adam();
+    let obs_dim = env.obs_dim();
+    let mut optim = adam();
     let mut data_obs: Vec<f32> = Vec::new();
     let mut data_act: Vec<f32> = Vec::new();
-    let mut labels = vec![0.0f32; n * ACTION_DIM];
-    let mut executed = vec![0.0f32; n * ACTION_DIM];
     let mut rounds = Vec::new();
     for round in 0..warm.rounds {
-        let beta = warm.teacher_share(round);
         let payload = forward_payload(actor.payload(), arch, warm)?;
-        let policy = Policy::from_payload(arch, &payload)
-            .map_err(|e| TrainError::Unsupported(format!("imitation: {e}")))?;
-        let mut from_teacher = 0usize;
-        for _ in 0..warm.steps_per_env {
-            let obs = env.observations().to_vec();
-            teacher.label(&env, &mut labels);
-            for e in 0..n {
-                let out = &mut executed[e * ACTION_DIM..(e + 1) * ACTION_DIM];
-                if rng.random::<f64>() < beta {
-                    out.copy_from_slice(&labels[e * ACTION_DIM..(e + 1) * ACTION_DIM]);
-                    from_teacher += 1;
-                } else {
-                    let mut stateless = firmware_core::policy::PolicyState::Stateless;
-                    let mean = Observation::from_values(&obs[e * obs_dim..(e + 1) * obs_dim])
-                        .and_then(|o| policy.act(&o, &mut stateless))
-                        .ok_or_else(|| TrainError::Unsupported("observation size".into()))?;
-                    for k in 0..ACTION_DIM {
-                        out[k] = mean[k] + warm.student_noise_std * crate::train::normal(&mut rng);
-                    }
-                }
-            }
-            data_obs.extend_from_slice(&obs);
-            data_act.extend_from_slice(&labels);
-            env.step(&executed)
-                .map_err(|e| TrainError::Unsupported(e.to_string()))?;
-        }
+        let policy = flying_policy(&payload, arch)?;
+        let (flown, teacher_share) = collect_round(
+            &mut env,
+            &teacher,
+            &policy,
+            warm.teacher_share(round),
+            warm.steps_per_env,
+            warm.student_noise_std,
+            &mut rng,
+        )?;
         let stats = env.take_stats();
+        data_obs.extend_from_slice(&flown.obs);
+        data_act.extend_from_slice(&flown.labels);
         let excess = (data_act.len() / ACTION_DIM).saturating_sub(warm.max_samples);
         data_obs.drain(..excess * obs_dim);
         data_act.drain(..excess * ACTION_DIM);
@@ -266,83 +411,11 @@ pub fn imitate(
             }
             mse = sum / f64::max(batches, 1.0);
         }
-        let sim_s = stats.steps as f64 * f64::from(env.dt_s());
-        let r = ImitationRound {
-            round: round + 1,
-            teacher_share: from_teacher as f64 / (n * warm.steps_per_env).max(1) as f64,
-            samples: count,
-            mse,
-            mse_first_epoch: 0.0,
-            gates_per_s: stats.gates_passed as f64 / sim_s.max(1e-9),
-            crash_rate_per_s: stats.crashes as f64 / sim_s.max(1e-9),
-            ..ImitationRound::default()
-        };
+        let r = round_line(round, teacher_share, count, (mse, 0.0), &stats, env.dt_s());
         log(&r, &forward_payload(actor.payload(), arch, warm)?);
         rounds.push(r);
     }
     Ok((end_of_stage(actor, arch, warm, device)?, rounds))
-}
-
-/// Who labels the states of a warm start.
-enum Teacher {
-    /// The classical baseline at a cruise speed.
-    Baseline(Box<BaselineController<'static>>),
-    /// A time-trial blob's mean, observing through its own spec.
-    Blob {
-        policy: Box<Policy<'static>>,
-        spec: firmware_core::observation::ObservationSpec,
-    },
-}
-
-impl Teacher {
-    fn of(config: &TrainConfig, warm: &WarmStart) -> Result<Self, TrainError> {
-        let Some(path) = &warm.teacher_blob else {
-            let preset = Preset::by_name(&config.env.preset).unwrap_or_else(Preset::paper);
-            let mut c = sitl::pilot::baseline_config_for(&preset);
-            c.cruise_speed_mps = warm.teacher_cruise_mps;
-            return Ok(Self::Baseline(Box::new(BaselineController::new(
-                c,
-                Track::figure_eight(),
-            ))));
-        };
-        let raw = std::fs::read(path).map_err(|e| {
-            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
-        })?;
-        // Parsed once; the policy views the weights in place for the rest of the process.
-        let bytes = crate::env::interned(&firmware_core::blob::AlignedBytes::new(&raw));
-        let blob = firmware_core::blob::Blob::parse(bytes.as_bytes()).map_err(|e| {
-            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
-        })?;
-        let policy = blob.policy().map_err(|e| {
-            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
-        })?;
-        if policy.is_recurrent() || blob.header().observation.layout.needs_opponent() {
-            return Err(TrainError::Unsupported(format!(
-                "warm_start.teacher_blob '{path}': the teacher must be a feed-forward time-trial policy"
-            )));
-        }
-        Ok(Self::Blob {
-            policy: Box::new(policy),
-            spec: blob.header().observation,
-        })
-    }
-
-    /// The teacher's actions for every env of `env` now.
-    fn label(&self, env: &TrainEnv, out: &mut [f32]) {
-        match self {
-            Self::Baseline(b) => env.teacher_actions(b, out),
-            Self::Blob { policy, spec } => env.policy_actions(policy, spec, out),
-        }
-    }
-}
-
-/// One DAgger round of a recurrent student: `steps × envs` samples, time-major, from fresh
-/// spawns (so the student's state starts at zero).
-struct Round {
-    obs: Vec<f32>,
-    labels: Vec<f32>,
-    /// 0 where the env's episode ended at the step before.
-    keep: Vec<f32>,
 }
 
 /// The warm start of a recurrent actor (rows E-G): DAgger as [`imitate`], on the config's
@@ -360,60 +433,33 @@ pub fn imitate_recurrent(
     log: &mut dyn FnMut(&ImitationRound, &[f32]),
 ) -> Result<(RecurrentActor, Vec<ImitationRound>), TrainError> {
     let (teacher, mut env, mut rng) = set_up(config, warm)?;
-    let (n, obs_dim) = (env.num_envs(), env.obs_dim());
-    let window = config.ppo.steps_per_env.max(1);
-    let envs_per_batch = (warm.minibatch / window).clamp(1, n);
-    let mut optim = crate::ppo::adam();
+    let n = env.num_envs();
+    let mut fit = RecurrentFit {
+        arch,
+        warm,
+        device,
+        n,
+        obs_dim: env.obs_dim(),
+        window: config.ppo.steps_per_env.max(1),
+        optim: adam(),
+    };
     let mut data: Vec<Round> = Vec::new();
-    let mut labels = vec![0.0f32; n * ACTION_DIM];
-    let mut executed = vec![0.0f32; n * ACTION_DIM];
     let mut rounds = Vec::new();
-    let valid = device.clone().without_autodiff();
     for round in 0..warm.rounds {
-        let beta = warm.teacher_share(round);
         let payload = forward_payload(actor.net.payload(), arch, warm)?;
-        let policy = Policy::from_payload(arch, &payload)
-            .map_err(|e| TrainError::Unsupported(format!("imitation: {e}")))?;
-        let mut memory = vec![policy.initial_state(); n];
+        let policy = flying_policy(&payload, arch)?;
         env.respawn_all();
-        let mut r = Round {
-            obs: Vec::new(),
-            labels: Vec::new(),
-            keep: Vec::new(),
-        };
-        let mut previous_done = vec![false; n];
-        let mut from_teacher = 0usize;
-        for _ in 0..warm.steps_per_env {
-            let obs = env.observations().to_vec();
-            teacher.label(&env, &mut labels);
-            for e in 0..n {
-                let out = &mut executed[e * ACTION_DIM..(e + 1) * ACTION_DIM];
-                // The student steps every time, so its state follows the flight.
-                let o = Observation::from_values(&obs[e * obs_dim..(e + 1) * obs_dim]);
-                let mean = o.and_then(|o| policy.act(&o, &mut memory[e]));
-                if rng.random::<f64>() < beta {
-                    out.copy_from_slice(&labels[e * ACTION_DIM..(e + 1) * ACTION_DIM]);
-                    from_teacher += 1;
-                } else {
-                    let mean = mean.unwrap_or([0.0; ACTION_DIM]);
-                    for k in 0..ACTION_DIM {
-                        out[k] = mean[k] + warm.student_noise_std * crate::train::normal(&mut rng);
-                    }
-                }
-            }
-            r.obs.extend_from_slice(&obs);
-            r.labels.extend_from_slice(&labels);
-            r.keep
-                .extend(previous_done.iter().map(|d| if *d { 0.0 } else { 1.0 }));
-            env.step(&executed)
-                .map_err(|e| TrainError::Unsupported(e.to_string()))?;
-            previous_done.copy_from_slice(env.dones());
-            for (m, _) in memory.iter_mut().zip(env.dones()).filter(|(_, d)| **d) {
-                m.clear();
-            }
-        }
+        let (flown, teacher_share) = collect_round(
+            &mut env,
+            &teacher,
+            &policy,
+            warm.teacher_share(round),
+            warm.steps_per_env,
+            warm.student_noise_std,
+            &mut rng,
+        )?;
         let stats = env.take_stats();
-        data.push(r);
+        data.push(flown);
         let per_round = n * warm.steps_per_env;
         let keep_rounds = (warm.max_samples / per_round.max(1)).max(1);
         if data.len() > keep_rounds {
@@ -422,129 +468,206 @@ pub fn imitate_recurrent(
 
         let (mut mse, mut mse_first_epoch) = (0.0, 0.0);
         for epoch in 0..warm.epochs {
-            // (round, window start, envs) minibatches with the windows' starting states.
-            let mut batches = Vec::new();
-            let mut starts: Vec<Vec<f32>> = Vec::new();
-            let start_net = forward_actor(&actor, arch, warm, device)?.net.valid();
-            for (ri, r) in data.iter().enumerate() {
-                let steps = r.labels.len() / (n * ACTION_DIM);
-                let net = start_net.clone();
-                let mut state = net.zero_state(n, &valid);
-                for t0 in (0..steps).step_by(window) {
-                    let len = window.min(steps - t0);
-                    starts.push(state.to_flat());
-                    let obs = Tensor::<2>::from_data(
-                        TensorData::new(
-                            r.obs[t0 * n * obs_dim..(t0 + len) * n * obs_dim].to_vec(),
-                            [len * n, obs_dim],
-                        ),
-                        &valid,
-                    )
-                    .reshape([len, n, obs_dim]);
-                    let keep = Tensor::<2>::from_data(
-                        TensorData::new(r.keep[t0 * n..(t0 + len) * n].to_vec(), [len, n]),
-                        &valid,
-                    );
-                    state = net.sequence(obs, keep, state).1;
-                    let mut envs: Vec<usize> = (0..n).collect();
-                    envs.shuffle(&mut rng);
-                    for group in envs.chunks(envs_per_batch) {
-                        batches.push((ri, t0, len, starts.len() - 1, group.to_vec()));
-                    }
-                }
-            }
-            batches.shuffle(&mut rng);
-            let (mut sum, mut count) = (0.0, 0.0);
-            let width =
-                crate::recurrent::LstmState::width(actor.net.lstm.len(), actor.net.hidden());
-            for (ri, t0, len, si, group) in batches {
-                let r = &data[ri];
-                // The windows of `envs`: their mean squared error's gradient and value.
-                let pass = |actor: &RecurrentActor, envs: &[usize]| -> (GradientsParams, f64) {
-                    let b = envs.len();
-                    let (mut o, mut a, mut k, mut h0) = (
-                        Vec::with_capacity(len * b * obs_dim),
-                        Vec::with_capacity(len * b * ACTION_DIM),
-                        Vec::with_capacity(len * b),
-                        Vec::with_capacity(b * width),
-                    );
-                    for t in t0..t0 + len {
-                        for &e in envs {
-                            let i = t * n + e;
-                            o.extend_from_slice(&r.obs[i * obs_dim..(i + 1) * obs_dim]);
-                            a.extend_from_slice(&r.labels[i * ACTION_DIM..(i + 1) * ACTION_DIM]);
-                            k.push(r.keep[i]);
-                        }
-                    }
-                    for &e in envs {
-                        h0.extend_from_slice(&starts[si][e * width..(e + 1) * width]);
-                    }
-                    let obs =
-                        Tensor::<2>::from_data(TensorData::new(o, [len * b, obs_dim]), device)
-                            .reshape([len, b, obs_dim]);
-                    let keep = Tensor::<2>::from_data(TensorData::new(k, [len, b]), device);
-                    let act =
-                        Tensor::<2>::from_data(TensorData::new(a, [len * b, ACTION_DIM]), device);
-                    let state = crate::recurrent::LstmState::from_flat(
-                        &h0,
-                        actor.net.lstm.len(),
-                        actor.net.hidden(),
-                        device,
-                    );
-                    let (mean, _) = actor.net.sequence(obs, keep, state);
-                    let loss = (mean - act).square().mean();
-                    let value =
-                        f64::from(values(loss.clone().inner()).first().copied().unwrap_or(0.0));
-                    (GradientsParams::from_grads(loss.backward(), actor), value)
-                };
-                // The two halves of the minibatch on the two cores: the mean over the whole
-                // minibatch is the size-weighted mean of the halves' means, and so is its
-                // gradient. The second half runs on a copy of the actor with parameters of
-                // its own (burn's autodiff cannot run two backward passes through shared
-                // parameters at once); its gradients are moved onto the actor's.
-                // Under `quantization_aware` both halves run on copies on the int8 grid.
-                let (left, right) = group.split_at(group.len() / 2);
-                let forward = forward_actor(&actor, arch, warm, device)?;
-                let (grads, value) = if left.is_empty() {
-                    pass(&forward, right)
-                } else {
-                    let twin = actor_holding(&actor, arch, &forward.net.payload(), device)?;
-                    let ((gl, vl), (gr, vr)) = std::thread::scope(|sc| {
-                        let job = sc.spawn(|| pass(&twin, left));
-                        let r = pass(&forward, right);
-                        (
-                            job.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
-                            r,
-                        )
-                    });
-                    let gl = crate::ppo::transfer_gradients(&twin, gl, &forward);
-                    let wl = left.len() as f32 / group.len() as f32;
-                    let grads = crate::ppo::weighted_sum(&forward, gl, wl, gr, 1.0 - wl);
-                    (grads, f64::from(wl) * vl + f64::from(1.0 - wl) * vr)
-                };
-                let grads = to_latent(&forward, grads, &actor, warm);
-                sum += value;
-                count += 1.0;
-                actor = optim.step(warm.round_learning_rate(round), actor, grads);
-            }
-            mse = sum / f64::max(count, 1.0);
+            let (a, epoch_mse) = fit.epoch(actor, &data, round, &mut rng)?;
+            actor = a;
+            mse = epoch_mse;
             if epoch == 0 {
                 mse_first_epoch = mse;
             }
         }
-        let sim_s = stats.steps as f64 * f64::from(env.dt_s());
-        let r = ImitationRound {
-            round: round + 1,
-            teacher_share: from_teacher as f64 / (n * warm.steps_per_env).max(1) as f64,
-            samples: data.len() * n * warm.steps_per_env,
-            mse,
-            mse_first_epoch,
-            gates_per_s: stats.gates_passed as f64 / sim_s.max(1e-9),
-            crash_rate_per_s: stats.crashes as f64 / sim_s.max(1e-9),
-            ..ImitationRound::default()
-        };
+        let samples = data.len() * per_round;
+        let r = round_line(
+            round,
+            teacher_share,
+            samples,
+            (mse, mse_first_epoch),
+            &stats,
+            env.dt_s(),
+        );
         log(&r, &forward_payload(actor.net.payload(), arch, warm)?);
         rounds.push(r);
     }
     Ok((end_of_stage(actor, arch, warm, device)?, rounds))
+}
+
+/// A minibatch of the recurrent regression: the windows of `envs` in round `round` from
+/// step `t0` for `len` steps, starting from the states `starts[start]`.
+struct Window {
+    round: usize,
+    t0: usize,
+    len: usize,
+    start: usize,
+    envs: Vec<usize>,
+}
+
+/// The recurrent regression of one warm-start stage.
+struct RecurrentFit<'a> {
+    arch: &'a Architecture,
+    warm: &'a WarmStart,
+    device: &'a Device,
+    n: usize,
+    obs_dim: usize,
+    /// Steps per window (backpropagation through time).
+    window: usize,
+    optim: ModuleOptimizer,
+}
+
+impl RecurrentFit<'_> {
+    /// One pass over `data` in DAgger round `round`: the windows' starting states from the
+    /// current student, then every window minibatch in a random order. Returns the student
+    /// and the epoch's mean squared error.
+    fn epoch(
+        &mut self,
+        mut actor: RecurrentActor,
+        data: &[Round],
+        round: u32,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<(RecurrentActor, f64), TrainError> {
+        let (windows, starts) = self.windows(&actor, data, rng)?;
+        let (mut sum, mut count) = (0.0, 0.0);
+        for w in &windows {
+            let (a, value) = self.step(actor, &data[w.round], w, &starts[w.start], round)?;
+            actor = a;
+            sum += value;
+            count += 1.0;
+        }
+        Ok((actor, sum / f64::max(count, 1.0)))
+    }
+
+    /// The (round, window start, envs) minibatches of `data`, shuffled, with the states the
+    /// windows start from (the current student run from zero at each round's start).
+    fn windows(
+        &self,
+        actor: &RecurrentActor,
+        data: &[Round],
+        rng: &mut ChaCha8Rng,
+    ) -> Result<(Vec<Window>, Vec<Vec<f32>>), TrainError> {
+        let (n, obs_dim, window) = (self.n, self.obs_dim, self.window);
+        let envs_per_batch = (self.warm.minibatch / window).clamp(1, n);
+        let valid = self.device.clone().without_autodiff();
+        let mut batches = Vec::new();
+        let mut starts: Vec<Vec<f32>> = Vec::new();
+        let start_net = forward_actor(actor, self.arch, self.warm, self.device)?
+            .net
+            .valid();
+        for (ri, r) in data.iter().enumerate() {
+            let steps = r.labels.len() / (n * ACTION_DIM);
+            let net = start_net.clone();
+            let mut state = net.zero_state(n, &valid);
+            for t0 in (0..steps).step_by(window) {
+                let len = window.min(steps - t0);
+                starts.push(state.to_flat());
+                let obs = Tensor::<2>::from_data(
+                    TensorData::new(
+                        r.obs[t0 * n * obs_dim..(t0 + len) * n * obs_dim].to_vec(),
+                        [len * n, obs_dim],
+                    ),
+                    &valid,
+                )
+                .reshape([len, n, obs_dim]);
+                let keep = Tensor::<2>::from_data(
+                    TensorData::new(r.keep[t0 * n..(t0 + len) * n].to_vec(), [len, n]),
+                    &valid,
+                );
+                state = net.sequence(obs, keep, state).1;
+                let mut envs: Vec<usize> = (0..n).collect();
+                envs.shuffle(rng);
+                for group in envs.chunks(envs_per_batch) {
+                    batches.push(Window {
+                        round: ri,
+                        t0,
+                        len,
+                        start: starts.len() - 1,
+                        envs: group.to_vec(),
+                    });
+                }
+            }
+        }
+        batches.shuffle(rng);
+        Ok((batches, starts))
+    }
+
+    /// The mean squared error of `actor` over the windows of `envs` in `w` and its gradient.
+    fn pass(
+        &self,
+        actor: &RecurrentActor,
+        r: &Round,
+        w: &Window,
+        envs: &[usize],
+        start: &[f32],
+    ) -> (GradientsParams, f64) {
+        let (n, obs_dim, device) = (self.n, self.obs_dim, self.device);
+        let (t0, len, b) = (w.t0, w.len, envs.len());
+        let width = LstmState::width(actor.net.lstm.len(), actor.net.hidden());
+        let (mut o, mut a, mut k, mut h0) = (
+            Vec::with_capacity(len * b * obs_dim),
+            Vec::with_capacity(len * b * ACTION_DIM),
+            Vec::with_capacity(len * b),
+            Vec::with_capacity(b * width),
+        );
+        for t in t0..t0 + len {
+            for &e in envs {
+                let i = t * n + e;
+                o.extend_from_slice(&r.obs[i * obs_dim..(i + 1) * obs_dim]);
+                a.extend_from_slice(&r.labels[i * ACTION_DIM..(i + 1) * ACTION_DIM]);
+                k.push(r.keep[i]);
+            }
+        }
+        for &e in envs {
+            h0.extend_from_slice(&start[e * width..(e + 1) * width]);
+        }
+        let obs = Tensor::<2>::from_data(TensorData::new(o, [len * b, obs_dim]), device)
+            .reshape([len, b, obs_dim]);
+        let keep = Tensor::<2>::from_data(TensorData::new(k, [len, b]), device);
+        let act = Tensor::<2>::from_data(TensorData::new(a, [len * b, ACTION_DIM]), device);
+        let state = LstmState::from_flat(&h0, actor.net.lstm.len(), actor.net.hidden(), device);
+        let (mean, _) = actor.net.sequence(obs, keep, state);
+        let loss = (mean - act).square().mean();
+        let value = f64::from(values(loss.clone().inner()).first().copied().unwrap_or(0.0));
+        (GradientsParams::from_grads(loss.backward(), actor), value)
+    }
+
+    /// One Adam step of `actor` on window minibatch `w` of round data `r`.
+    ///
+    /// The two halves of the minibatch run on the two cores: the mean over the whole
+    /// minibatch is the size-weighted mean of the halves' means, and so is its gradient. The
+    /// second half runs on a copy of the actor with parameters of its own (burn's autodiff
+    /// cannot run two backward passes through shared parameters at once); its gradients are
+    /// moved onto the actor's. Under `quantization_aware` both halves run on copies on the
+    /// int8 grid.
+    fn step(
+        &mut self,
+        actor: RecurrentActor,
+        r: &Round,
+        w: &Window,
+        start: &[f32],
+        round: u32,
+    ) -> Result<(RecurrentActor, f64), TrainError> {
+        let (arch, warm, device) = (self.arch, self.warm, self.device);
+        let (left, right) = w.envs.split_at(w.envs.len() / 2);
+        let forward = forward_actor(&actor, arch, warm, device)?;
+        let (grads, value) = if left.is_empty() {
+            self.pass(&forward, r, w, right, start)
+        } else {
+            let twin = actor_holding(&actor, arch, &forward.net.payload(), device)?;
+            let this = &*self;
+            let ((gl, vl), (gr, vr)) = std::thread::scope(|sc| {
+                let job = sc.spawn(|| this.pass(&twin, r, w, left, start));
+                let right = this.pass(&forward, r, w, right, start);
+                (
+                    job.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
+                    right,
+                )
+            });
+            let gl = transfer_gradients(&twin, gl, &forward);
+            let wl = left.len() as f32 / w.envs.len() as f32;
+            let grads = weighted_sum(&forward, gl, wl, gr, 1.0 - wl);
+            (grads, f64::from(wl) * vl + f64::from(1.0 - wl) * vr)
+        };
+        let grads = to_latent(&forward, grads, &actor, warm);
+        let actor = self
+            .optim
+            .step(warm.round_learning_rate(round), actor, grads);
+        Ok((actor, value))
+    }
 }

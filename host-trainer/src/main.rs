@@ -11,7 +11,7 @@ use firmware_core::blob::{Provenance, WeightDtype, convert_bytes};
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::config::TrainConfig;
 use host_trainer::train::{RunOptions, run};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 #[derive(Parser)]
@@ -118,15 +118,8 @@ fn parse_dtype(s: &str) -> Result<WeightDtype, String> {
     WeightDtype::from_name(s).ok_or_else(|| format!("`{s}`: the dtypes are f32 and i8"))
 }
 
-fn row(c: char) -> Option<TableRow> {
-    TableRow::ALL
-        .into_iter()
-        .find(|r| r.letter() == c.to_ascii_uppercase())
-}
-
 fn main() -> ExitCode {
-    let cli = Cli::parse();
-    let result = match cli.command {
+    let result = match Cli::parse().command {
         Command::Train {
             config,
             out,
@@ -135,133 +128,31 @@ fn main() -> ExitCode {
             quiet,
             stop_after,
             init_actor,
-        } => (|| -> Result<(), String> {
-            let cfg =
-                TrainConfig::load(&config).map_err(|e| format!("{}: {e}", config.display()))?;
-            let options = RunOptions {
-                out: out.clone(),
-                resume,
-                device: device(backend)?,
-                progress: !quiet,
-                stop_after,
-                init_actor,
-            };
-            println!(
-                "training '{}' (row {}, seed {}, {} envs x {} steps = {} samples per iteration, {} iterations, config hash {:016x}) into {}",
-                cfg.run.name,
-                cfg.run.row,
-                cfg.run.seed,
-                cfg.env.num_envs,
-                cfg.ppo.steps_per_env,
-                cfg.samples_per_iteration(),
-                cfg.run.iterations,
-                cfg.hash(),
-                out.display()
-            );
-            let s = run(&cfg, &options).map_err(|e| e.to_string())?;
-            let m = &s.last;
-            println!(
-                "{} iterations, {:.0} s of training ({:.1} min), {} samples",
-                s.iterations,
-                s.wall_s,
-                s.wall_s / 60.0,
-                m.samples
-            );
-            let m = match &s.best {
-                Some(b) => {
-                    println!(
-                        "exported the actor of iteration {} (run.keep_best: the referee's best)",
-                        b.iteration
-                    );
-                    b
-                }
-                None => m,
-            };
-            if let Some(sr) = m.eval_success_rate {
-                let what = match &cfg.race {
-                    None => "45 s from the stage-1 spawn".to_string(),
-                    Some(r) => format!(
-                        "{} races of 45 s against {}, seed {}",
-                        cfg.run.eval_races, r.opponent, cfg.run.eval_seed
-                    ),
-                };
-                let overtakes = match (m.eval_overtakes, m.eval_sustained_overtakes) {
-                    (Some(o), Some(s)) => format!(", {o} overtakes ({s} sustained)"),
-                    _ => String::new(),
-                };
-                println!(
-                    "referee ({what}): success {:.3}, crashes {:.3} /s, best lap {}{overtakes}",
-                    sr,
-                    m.eval_crash_rate.unwrap_or(0.0),
-                    m.eval_best_lap_s
-                        .map_or("DNF".to_string(), |l| format!("{l:.2} s"))
-                );
-            }
-            match &s.blob {
-                Some(p) => println!("policy: {}", p.display()),
-                None => println!(
-                    "stopped before the budget; continue with --resume (checkpoint in {})",
-                    out.join("checkpoints").display()
-                ),
-            }
-            Ok(())
-        })(),
+        } => device(backend).and_then(|device| {
+            train(
+                &config,
+                RunOptions {
+                    out,
+                    resume,
+                    device,
+                    progress: !quiet,
+                    stop_after,
+                    init_actor,
+                },
+            )
+        }),
         Command::Export {
             config,
             out,
             blob,
             dtype,
-        } => (|| -> Result<(), String> {
-            let cfg =
-                TrainConfig::load(&config).map_err(|e| format!("{}: {e}", config.display()))?;
-            let device = burn::tensor::Device::flex().autodiff();
-            let (iteration, bytes) = host_trainer::train::checkpoint_blob(&cfg, &out, &device)
-                .map_err(|e| e.to_string())?;
-            let bytes = match dtype {
-                WeightDtype::F32 => bytes,
-                WeightDtype::I8 => convert_bytes(&bytes, dtype).map_err(|e| e.to_string())?,
-            };
-            sitl::files::write_atomically(&blob, &bytes)
-                .map_err(|e| format!("{}: {e}", blob.display()))?;
-            println!(
-                "{}: the actor of iteration {iteration} -> {} ({} bytes, {})",
-                out.display(),
-                blob.display(),
-                bytes.len(),
-                dtype.name()
-            );
-            Ok(())
-        })(),
+        } => export(&config, &out, &blob, dtype),
         Command::ImportRslrl {
             safetensors,
-            row: r,
+            row,
             out,
             name,
-        } => (|| -> Result<(), String> {
-            let row = row(r).ok_or_else(|| format!("--row {r}: not a Table 1 row A-G"))?;
-            let arch = Architecture::table1(row);
-            let bytes = std::fs::read(&safetensors)
-                .map_err(|e| format!("{}: {e}", safetensors.display()))?;
-            let weights = host_trainer::rslrl::import_actor(&bytes, &arch)
-                .map_err(|e| format!("{}: {e}", safetensors.display()))?;
-            let mut provenance = Provenance::default();
-            provenance
-                .name
-                .push_str(&name)
-                .map_err(|_| "--name: at most 32 bytes".to_string())?;
-            let blob = host_trainer::export::export_blob(row, provenance, &weights)
-                .map_err(|e| format!("export: {e:?}"))?;
-            sitl::files::write_atomically(&out, &blob)
-                .map_err(|e| format!("{}: {e}", out.display()))?;
-            println!(
-                "{}: row {r} actor, {} weights -> {} ({} bytes)",
-                safetensors.display(),
-                weights.len(),
-                out.display(),
-                blob.len()
-            );
-            Ok(())
-        })(),
+        } => import_rslrl(&safetensors, row, &out, &name),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -270,4 +161,116 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// `train`: runs (or resumes) the run of `config` and prints where it ended.
+fn train(config: &Path, options: RunOptions) -> Result<(), String> {
+    let cfg = TrainConfig::load(config).map_err(|e| format!("{}: {e}", config.display()))?;
+    println!(
+        "training '{}' (row {}, seed {}, {} envs x {} steps = {} samples per iteration, {} iterations, config hash {:016x}) into {}",
+        cfg.run.name,
+        cfg.run.row,
+        cfg.run.seed,
+        cfg.env.num_envs,
+        cfg.ppo.steps_per_env,
+        cfg.samples_per_iteration(),
+        cfg.run.iterations,
+        cfg.hash(),
+        options.out.display()
+    );
+    let s = run(&cfg, &options).map_err(|e| e.to_string())?;
+    let m = &s.last;
+    println!(
+        "{} iterations, {:.0} s of training ({:.1} min), {} samples",
+        s.iterations,
+        s.wall_s,
+        s.wall_s / 60.0,
+        m.samples
+    );
+    let m = match &s.best {
+        Some(b) => {
+            println!(
+                "exported the actor of iteration {} (run.keep_best: the referee's best)",
+                b.iteration
+            );
+            b
+        }
+        None => m,
+    };
+    if let Some(sr) = m.eval_success_rate {
+        let what = match &cfg.race {
+            None => "45 s from the stage-1 spawn".to_string(),
+            Some(r) => format!(
+                "{} races of 45 s against {}, seed {}",
+                cfg.run.eval_races, r.opponent, cfg.run.eval_seed
+            ),
+        };
+        let overtakes = match (m.eval_overtakes, m.eval_sustained_overtakes) {
+            (Some(o), Some(s)) => format!(", {o} overtakes ({s} sustained)"),
+            _ => String::new(),
+        };
+        println!(
+            "referee ({what}): success {:.3}, crashes {:.3} /s, best lap {}{overtakes}",
+            sr,
+            m.eval_crash_rate.unwrap_or(0.0),
+            m.eval_best_lap_s
+                .map_or("DNF".to_string(), |l| format!("{l:.2} s"))
+        );
+    }
+    match &s.blob {
+        Some(p) => println!("policy: {}", p.display()),
+        None => println!(
+            "stopped before the budget; continue with --resume (checkpoint in {})",
+            options.out.join("checkpoints").display()
+        ),
+    }
+    Ok(())
+}
+
+/// `export`: the actor of the latest checkpoint of the run in `out` as a blob.
+fn export(config: &Path, out: &Path, blob: &Path, dtype: WeightDtype) -> Result<(), String> {
+    let cfg = TrainConfig::load(config).map_err(|e| format!("{}: {e}", config.display()))?;
+    let device = burn::tensor::Device::flex().autodiff();
+    let (iteration, bytes) =
+        host_trainer::run_dir::checkpoint_blob(&cfg, out, &device).map_err(|e| e.to_string())?;
+    let bytes = match dtype {
+        WeightDtype::F32 => bytes,
+        WeightDtype::I8 => convert_bytes(&bytes, dtype).map_err(|e| e.to_string())?,
+    };
+    sitl::files::write_atomically(blob, &bytes).map_err(|e| format!("{}: {e}", blob.display()))?;
+    println!(
+        "{}: the actor of iteration {iteration} -> {} ({} bytes, {})",
+        out.display(),
+        blob.display(),
+        bytes.len(),
+        dtype.name()
+    );
+    Ok(())
+}
+
+/// `import-rslrl`: an RSL-RL actor as a blob of Table 1 row `r`.
+fn import_rslrl(safetensors: &Path, r: char, out: &Path, name: &str) -> Result<(), String> {
+    let row =
+        TableRow::from_letter(r).ok_or_else(|| format!("--row {r}: not a Table 1 row A-G"))?;
+    let arch = Architecture::table1(row);
+    let bytes =
+        std::fs::read(safetensors).map_err(|e| format!("{}: {e}", safetensors.display()))?;
+    let weights = host_trainer::rslrl::import_actor(&bytes, &arch)
+        .map_err(|e| format!("{}: {e}", safetensors.display()))?;
+    let mut provenance = Provenance::default();
+    provenance
+        .name
+        .push_str(name)
+        .map_err(|_| "--name: at most 32 bytes".to_string())?;
+    let blob = host_trainer::export::export_blob(row, provenance, &weights)
+        .map_err(|e| format!("export: {e:?}"))?;
+    sitl::files::write_atomically(out, &blob).map_err(|e| format!("{}: {e}", out.display()))?;
+    println!(
+        "{}: row {r} actor, {} weights -> {} ({} bytes)",
+        safetensors.display(),
+        weights.len(),
+        out.display(),
+        blob.len()
+    );
+    Ok(())
 }

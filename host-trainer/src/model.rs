@@ -1,5 +1,5 @@
-//! The stage-1 actor and critic on `burn`: separate MLPs of the same shape (SPEC
-//! "Learning"), tanh hidden activations, a linear output, and a learned state-independent
+//! The feed-forward actor and critic of rows A-D on `burn`: separate MLPs of the same shape
+//! (docs/DESIGN.md "Learning"), tanh hidden activations, a linear output, and a learned state-independent
 //! log standard deviation for the Gaussian policy.
 //!
 //! The actor's weights map one-to-one onto a firmware-core blob payload ([`Actor::payload`],
@@ -12,12 +12,14 @@
 //! bound with firmware-core (which uses libm's `tanhf`), tested in
 //! `host-trainer/tests/parity.rs`.
 
+use crate::batch::{Batch, Minibatch, gather, tensor2};
+use crate::nets::{PolicyNet, PpoNet, ValueNet};
 use burn::module::{Module, Param};
 use burn::nn::Linear;
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::policy::{Architecture, TensorKind};
-use rand::{Rng, SeedableRng};
+use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 /// `tanh(x)` as `2·σ(2x) − 1` (see the module doc).
@@ -99,12 +101,15 @@ pub(crate) fn linear_from_pytorch(
     }
 }
 
-/// Values of a tensor as `f32`, row-major.
+/// Values of a tensor as `f32`, row-major. `convert` makes the data f32, so the copy out
+/// cannot meet a dtype mismatch; any other representation is read element by element
+/// rather than lost.
 pub fn values<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data()
-        .convert::<f32>()
-        .try_into_vec::<f32>()
-        .unwrap_or_default()
+    let data = t.into_data().convert::<f32>();
+    match data.try_to_vec::<f32>() {
+        Ok(v) => v,
+        Err(_) => data.iter::<f32>().collect(),
+    }
 }
 
 /// The Gaussian policy: an MLP giving the mean and a learned log-std per action.
@@ -132,8 +137,54 @@ pub fn mlp_sizes(arch: &Architecture) -> Vec<usize> {
 }
 
 impl Actor {
-    /// A fresh actor of `arch` (feed-forward only) with σ = `init_std`.
-    pub fn new(arch: &Architecture, init_std: f32, rng: &mut ChaCha8Rng, device: &Device) -> Self {
+    /// The Gaussian mean for a batch of observations `[n, obs]`.
+    pub fn mean(&self, obs: Tensor<2>) -> Tensor<2> {
+        self.mlp.forward(obs)
+    }
+}
+
+/// `mlp`'s outputs for `mb`'s samples of `b`.
+fn mlp_outputs(mlp: &Mlp, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+    mlp.forward(tensor2(
+        gather(&b.obs, b.obs_dim, &mb.samples),
+        b.obs_dim,
+        device,
+    ))
+}
+
+/// `mlp`'s outputs for every sample of `b` and, with `last`, for the observations after the
+/// window (no state to carry).
+fn mlp_rollout_outputs(
+    mlp: &Mlp,
+    b: &Batch,
+    last: Option<&[f32]>,
+    device: &Device,
+) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let all = values(mlp.forward(tensor2(b.obs.clone(), b.obs_dim, device)));
+    let last = last.map_or_else(Vec::new, |l| {
+        values(mlp.forward(tensor2(l.to_vec(), b.obs_dim, device)))
+    });
+    (all, last, Vec::new())
+}
+
+impl PpoNet for Actor {
+    const RECURRENT: bool = false;
+    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+        mlp_outputs(&self.mlp, b, mb, device)
+    }
+    fn rollout_outputs(
+        &self,
+        b: &Batch,
+        last: Option<&[f32]>,
+        device: &Device,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        mlp_rollout_outputs(&self.mlp, b, last, device)
+    }
+}
+
+impl PolicyNet for Actor {
+    /// Feed-forward `arch` only.
+    fn fresh(arch: &Architecture, init_std: f32, rng: &mut ChaCha8Rng, device: &Device) -> Self {
         let sizes = mlp_sizes(arch);
         let mlp = Mlp::new(&sizes, rng, device);
         let n = usize::from(arch.action_dim);
@@ -144,27 +195,16 @@ impl Actor {
         }
     }
 
-    /// The same actor with its output bias set to `action` on every motor: the mean action
-    /// of an all-zero hidden layer (e.g. the hover action, so that the first rollouts hover
-    /// instead of falling).
-    pub fn with_output_bias(mut self, action: f32) -> Self {
-        self.mlp = self.mlp.with_output_bias(action);
-        self
+    fn log_std(&self) -> Tensor<1> {
+        self.log_std.val()
     }
 
-    /// The Gaussian mean for a batch of observations `[n, obs]`.
-    pub fn mean(&self, obs: Tensor<2>) -> Tensor<2> {
-        self.mlp.forward(obs)
-    }
-
-    /// σ per action.
-    pub fn std(&self) -> Vec<f32> {
+    fn std(&self) -> Vec<f32> {
         values(self.log_std.val().exp())
     }
 
-    /// The weights in firmware-core payload order (see `Architecture::tensors`): per layer
-    /// the weight `[out, in]` row-major, then the bias.
-    pub fn payload(&self) -> Vec<f32> {
+    /// Per layer the weight `[out, in]` row-major, then the bias.
+    fn payload(&self) -> Vec<f32> {
         let mut out = Vec::new();
         for layer in &self.mlp.layers {
             out.extend(values(layer.weight.val().transpose()));
@@ -175,9 +215,8 @@ impl Actor {
         out
     }
 
-    /// An actor holding `payload` (firmware-core order) for `arch`, with σ = `std`.
-    /// `None` when the payload does not have `arch`'s parameter count or `arch` is recurrent.
-    pub fn from_payload(
+    /// `None` also when `arch` is recurrent.
+    fn from_payload(
         arch: &Architecture,
         payload: &[f32],
         std: &[f32],
@@ -210,11 +249,23 @@ impl Actor {
             log_std: Param::from_tensor(Tensor::from_data(TensorData::new(log_std, [n]), device)),
         })
     }
+
+    fn with_output_bias(mut self, action: f32) -> Self {
+        self.mlp = self.mlp.with_output_bias(action);
+        self
+    }
 }
 
 impl Critic {
-    /// A fresh critic with the hidden widths of `arch` and one output.
-    pub fn new(arch: &Architecture, rng: &mut ChaCha8Rng, device: &Device) -> Self {
+    /// V(obs) for a batch `[n, obs]`, as `[n, 1]`.
+    pub fn value(&self, obs: Tensor<2>) -> Tensor<2> {
+        self.mlp.forward(obs)
+    }
+}
+
+impl ValueNet for Critic {
+    /// The hidden widths of `arch` and one output.
+    fn fresh(arch: &Architecture, rng: &mut ChaCha8Rng, device: &Device) -> Self {
         let mut sizes = mlp_sizes(arch);
         if let Some(last) = sizes.last_mut() {
             *last = 1;
@@ -223,17 +274,19 @@ impl Critic {
             mlp: Mlp::new(&sizes, rng, device),
         }
     }
-
-    /// V(obs) for a batch `[n, obs]`, as `[n, 1]`.
-    pub fn value(&self, obs: Tensor<2>) -> Tensor<2> {
-        self.mlp.forward(obs)
-    }
 }
 
-/// The generator of the network initialisation for `seed` (its own stream, apart from the
-/// environment's and the action noise's).
-pub fn init_rng(seed: u64) -> ChaCha8Rng {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    rng.set_stream(u64::MAX);
-    rng
+impl PpoNet for Critic {
+    const RECURRENT: bool = false;
+    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+        mlp_outputs(&self.mlp, b, mb, device)
+    }
+    fn rollout_outputs(
+        &self,
+        b: &Batch,
+        last: Option<&[f32]>,
+        device: &Device,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        mlp_rollout_outputs(&self.mlp, b, last, device)
+    }
 }

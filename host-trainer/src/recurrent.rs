@@ -1,6 +1,8 @@
 //! The recurrent Table 1 networks (rows E, F, G) on `burn`: a stack of LSTM layers, then an
 //! MLP head with tanh hidden layers and a linear output, for the actor (4 Gaussian means
-//! and a learned log σ) and the critic (one value). They are what recurrent PPO trains.
+//! and a learned log σ) and the critic (one value). They are what recurrent PPO trains:
+//! [`crate::ppo`] runs them through the [`PpoNet`] implementations at the end of this file,
+//! which run a minibatch's whole env windows from the states stored at rollout time.
 //!
 //! **The fused cell.** Each layer keeps its four gates in one input weight `[in, 4H]` and
 //! one recurrent weight `[H, 4H]` (PyTorch's gate order i, f, g, o along the columns), so a
@@ -21,11 +23,13 @@
 //! from the state stored at its first step (zero after a reset), and a padded step is one
 //! that does not exist here; the test checks the two against each other.
 
+use crate::batch::{Batch, Minibatch, gather, tensor2};
 use crate::model::{Mlp, fast_tanh, values};
+use crate::nets::{PolicyNet, PpoNet, ValueNet};
 use burn::module::{Module, Param};
 use burn::tensor::activation::sigmoid;
 use burn::tensor::{Device, Tensor, TensorData};
-use firmware_core::policy::{Architecture, PolicyState, TensorKind};
+use firmware_core::policy::{Architecture, TensorKind};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
@@ -141,26 +145,6 @@ impl LstmState {
             return Vec::new();
         }
         values(Tensor::cat(parts, 1))
-    }
-}
-
-/// Appends a firmware-core recurrent state in [`LstmState`]'s flat layout (per layer `h`
-/// then `c`); nothing for a feed-forward policy.
-pub fn push_flat_state(state: &PolicyState, out: &mut Vec<f32>) {
-    match state {
-        PolicyState::Stateless => {}
-        PolicyState::Lstm1(s) => {
-            out.extend_from_slice(&s.first.h);
-            out.extend_from_slice(&s.first.c);
-        }
-        PolicyState::Lstm2(s) => {
-            out.extend_from_slice(&s.first.h);
-            out.extend_from_slice(&s.first.c);
-            for d in &s.deep {
-                out.extend_from_slice(&d.h);
-                out.extend_from_slice(&d.c);
-            }
-        }
     }
 }
 
@@ -329,9 +313,101 @@ pub struct RecurrentActor {
     pub log_std: Param<Tensor<1>>,
 }
 
-impl RecurrentActor {
-    /// A fresh actor of `arch` (recurrent) with σ = `init_std`.
-    pub fn new(arch: &Architecture, init_std: f32, rng: &mut ChaCha8Rng, device: &Device) -> Self {
+/// The recurrent value function: an [`LstmNet`] with one output.
+#[derive(Module, Debug)]
+pub struct RecurrentCritic {
+    /// Value network.
+    pub net: LstmNet,
+}
+
+/// The windows of `mb.envs` through `net` from the states `h0` (`envs × width` rows of
+/// the whole batch).
+fn window_outputs(
+    net: &LstmNet,
+    b: &Batch,
+    mb: &Minibatch,
+    h0: &[f32],
+    device: &Device,
+) -> Tensor<2> {
+    let Some(seq) = &b.sequence else {
+        return Tensor::zeros([0, 1], device);
+    };
+    let (layers, hidden) = (net.lstm.len(), net.hidden());
+    let width = LstmState::width(layers, hidden);
+    let envs = mb.envs.len();
+    let obs = tensor2(gather(&b.obs, b.obs_dim, &mb.samples), b.obs_dim, device)
+        .reshape([seq.steps, envs, b.obs_dim]);
+    let keep: Vec<f32> = mb.samples.iter().map(|&i| seq.keep[i]).collect();
+    let keep = Tensor::<2>::from_data(TensorData::new(keep, [seq.steps, envs]), device);
+    let state = if h0.is_empty() {
+        net.zero_state(envs, device)
+    } else {
+        LstmState::from_flat(&gather(h0, width, &mb.envs), layers, hidden, device)
+    };
+    net.sequence(obs, keep, state).0
+}
+
+/// The whole rollout through `net` (no autodiff): every sample's output and, with
+/// `last_obs`, the outputs for the observations after the window and the state after the
+/// window (zeroed where the episode ended at its last step).
+fn window_rollout_outputs(
+    net: &LstmNet,
+    b: &Batch,
+    last_obs: Option<&[f32]>,
+    h0: &[f32],
+    device: &Device,
+) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let Some(seq) = &b.sequence else {
+        return (Vec::new(), Vec::new(), Vec::new());
+    };
+    let n = seq.num_envs;
+    let state = if h0.is_empty() {
+        net.zero_state(n, device)
+    } else {
+        LstmState::from_flat(h0, net.lstm.len(), net.hidden(), device)
+    };
+    let obs = tensor2(b.obs.clone(), b.obs_dim, device).reshape([seq.steps, n, b.obs_dim]);
+    let keep = Tensor::<2>::from_data(TensorData::new(seq.keep.clone(), [seq.steps, n]), device);
+    let (all, after) = net.sequence(obs, keep, state);
+    let Some(last_obs) = last_obs else {
+        return (values(all), Vec::new(), Vec::new());
+    };
+    let last_keep = Tensor::<2>::from_data(TensorData::new(seq.last_keep.clone(), [1, n]), device);
+    let last = tensor2(last_obs.to_vec(), b.obs_dim, device).reshape([1, n, b.obs_dim]);
+    let kept = LstmState {
+        layers: after
+            .layers
+            .iter()
+            .map(|(h, c)| {
+                let k = last_keep.clone().reshape([n, 1]);
+                (h.clone() * k.clone(), c.clone() * k)
+            })
+            .collect(),
+    };
+    let (last_out, _) = net.sequence(last, last_keep.clone(), after);
+    (values(all), values(last_out), kept.to_flat())
+}
+
+impl PpoNet for RecurrentActor {
+    const RECURRENT: bool = true;
+    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.actor_h0);
+        window_outputs(&self.net, b, mb, h0, device)
+    }
+    fn rollout_outputs(
+        &self,
+        b: &Batch,
+        last: Option<&[f32]>,
+        device: &Device,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.actor_h0);
+        window_rollout_outputs(&self.net, b, last, h0, device)
+    }
+}
+
+impl PolicyNet for RecurrentActor {
+    /// Recurrent `arch` only.
+    fn fresh(arch: &Architecture, init_std: f32, rng: &mut ChaCha8Rng, device: &Device) -> Self {
         let n = usize::from(arch.action_dim);
         Self {
             net: LstmNet::new(arch, n, rng, device),
@@ -342,13 +418,19 @@ impl RecurrentActor {
         }
     }
 
-    /// σ per action.
-    pub fn std(&self) -> Vec<f32> {
+    fn log_std(&self) -> Tensor<1> {
+        self.log_std.val()
+    }
+
+    fn std(&self) -> Vec<f32> {
         values(self.log_std.val().exp())
     }
 
-    /// The actor holding `payload` with σ = `std`, or `None` when the sizes do not match.
-    pub fn from_payload(
+    fn payload(&self) -> Vec<f32> {
+        self.net.payload()
+    }
+
+    fn from_payload(
         arch: &Architecture,
         payload: &[f32],
         std: &[f32],
@@ -366,20 +448,35 @@ impl RecurrentActor {
             )),
         })
     }
+
+    fn with_output_bias(mut self, action: f32) -> Self {
+        self.net.head = self.net.head.with_output_bias(action);
+        self
+    }
 }
 
-/// The recurrent value function: an [`LstmNet`] with one output.
-#[derive(Module, Debug)]
-pub struct RecurrentCritic {
-    /// Value network.
-    pub net: LstmNet,
-}
-
-impl RecurrentCritic {
-    /// A fresh critic of `arch`'s shape with one output.
-    pub fn new(arch: &Architecture, rng: &mut ChaCha8Rng, device: &Device) -> Self {
+impl ValueNet for RecurrentCritic {
+    /// `arch`'s shape with one output.
+    fn fresh(arch: &Architecture, rng: &mut ChaCha8Rng, device: &Device) -> Self {
         Self {
             net: LstmNet::new(arch, 1, rng, device),
         }
+    }
+}
+
+impl PpoNet for RecurrentCritic {
+    const RECURRENT: bool = true;
+    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.critic_h0);
+        window_outputs(&self.net, b, mb, h0, device)
+    }
+    fn rollout_outputs(
+        &self,
+        b: &Batch,
+        last: Option<&[f32]>,
+        device: &Device,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.critic_h0);
+        window_rollout_outputs(&self.net, b, last, h0, device)
     }
 }

@@ -7,12 +7,15 @@ use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::blob::{AlignedBytes, Blob};
 use firmware_core::policy::{Architecture, Policy, TableRow};
 use host_trainer::config::TrainConfig;
-use host_trainer::env::{EnvConfig, OBS_DIM, TrainEnv};
-use host_trainer::model::{Actor, Critic, init_rng, values};
-use host_trainer::ppo::{Learner, Rollout};
-use host_trainer::train::actor_blob;
+use host_trainer::export::actor_blob;
+use host_trainer::model::{Actor, Critic, values};
+use host_trainer::nets::{PolicyNet, ValueNet};
+use host_trainer::ppo::Learner;
+use host_trainer::rng::init_rng;
+use host_trainer::rollout::Rollout;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use sitl::env::{EnvConfig, OBS_DIM, VecEnv};
 
 const CONFIG: &str = include_str!("../configs/stage1.toml");
 
@@ -44,7 +47,7 @@ fn max_action_diff(actor: &Actor, config: &TrainConfig, obs: &[f32], device: &De
 }
 
 fn env_observations(steps: usize) -> (Vec<f32>, Rollout) {
-    let mut env = TrainEnv::new(EnvConfig::paper_along_track(32, 5));
+    let mut env = VecEnv::time_trial(EnvConfig::paper_along_track(32, 5));
     let mut rng = ChaCha8Rng::seed_from_u64(9);
     let mut rollout = Rollout::new(32, OBS_DIM);
     let mut all = Vec::new();
@@ -68,8 +71,8 @@ fn exported_blob_acts_as_the_burn_actor() {
     let device = Device::flex().autodiff();
     let arch = Architecture::table1(TableRow::A);
     let mut rng = init_rng(config.run.seed);
-    let actor = Actor::new(&arch, 1.0, &mut rng, &device);
-    let critic = Critic::new(&arch, &mut rng, &device);
+    let actor = Actor::fresh(&arch, 1.0, &mut rng, &device);
+    let critic = Critic::fresh(&arch, &mut rng, &device);
 
     // Random observations over the whole clipped range, and beyond it.
     let mut r = ChaCha8Rng::seed_from_u64(1);
@@ -104,7 +107,7 @@ fn exported_blob_acts_as_the_burn_actor() {
 fn payload_round_trips_through_the_actor() {
     let device = Device::flex().autodiff();
     let arch = Architecture::table1(TableRow::A);
-    let actor = Actor::new(&arch, 0.7, &mut init_rng(3), &device);
+    let actor = Actor::fresh(&arch, 0.7, &mut init_rng(3), &device);
     let payload = actor.payload();
     assert_eq!(payload.len(), arch.param_count());
     let back = Actor::from_payload(&arch, &payload, &actor.std(), &device).unwrap();

@@ -4,9 +4,12 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::policy::{Architecture, TableRow};
+use host_trainer::batch::{Batch, gae, gaussian_log_prob};
 use host_trainer::config::PpoConfig;
-use host_trainer::model::{Actor, Critic, init_rng, values};
-use host_trainer::ppo::{Batch, Learner, gae, gaussian_log_prob};
+use host_trainer::model::{Actor, Critic, values};
+use host_trainer::nets::{PolicyNet, ValueNet};
+use host_trainer::ppo::Learner;
+use host_trainer::rng::init_rng;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -35,8 +38,8 @@ fn an_update_moves_the_mean_toward_positive_advantages() {
     let device = Device::flex().autodiff();
     let arch = Architecture::table1(TableRow::A);
     let mut rng = init_rng(4);
-    let actor = Actor::new(&arch, 0.5, &mut rng, &device);
-    let critic = Critic::new(&arch, &mut rng, &device);
+    let actor = Actor::fresh(&arch, 0.5, &mut rng, &device);
+    let critic = Critic::fresh(&arch, &mut rng, &device);
     let mut learner = Learner::new(actor, critic, 1e-3, device.clone());
     let mut r = ChaCha8Rng::seed_from_u64(2);
     let n = 2048;
@@ -168,8 +171,8 @@ fn parallel_passes_equal_sequential_passes() {
     let arch = Architecture::table1(TableRow::A);
     let make = || {
         let mut rng = init_rng(9);
-        let actor = Actor::new(&arch, 0.5, &mut rng, &device);
-        let critic = Critic::new(&arch, &mut rng, &device);
+        let actor = Actor::fresh(&arch, 0.5, &mut rng, &device);
+        let critic = Critic::fresh(&arch, &mut rng, &device);
         Learner::new(actor, critic, 1e-3, device.clone())
     };
     let mut r = ChaCha8Rng::seed_from_u64(5);
@@ -218,8 +221,8 @@ fn a_nan_minibatch_changes_nothing() {
     let device = Device::flex().autodiff();
     let arch = Architecture::table1(TableRow::A);
     let mut rng = init_rng(2);
-    let actor = Actor::new(&arch, 0.5, &mut rng, &device);
-    let critic = Critic::new(&arch, &mut rng, &device);
+    let actor = Actor::fresh(&arch, 0.5, &mut rng, &device);
+    let critic = Critic::fresh(&arch, &mut rng, &device);
     let mut learner = Learner::new(actor, critic, 1e-3, device.clone());
     let n = 256;
     let mut advantages = vec![0.5f32; n];

@@ -8,7 +8,9 @@ use firmware_core::blob::{AlignedBytes, Blob};
 use firmware_core::observation::ObservationLayout;
 use firmware_core::track::Track;
 use host_trainer::config::TrainConfig;
-use host_trainer::train::{IterationMetrics, RunOptions, run};
+use host_trainer::metrics::IterationMetrics;
+use host_trainer::nets::PolicyNet;
+use host_trainer::train::{RunOptions, run};
 use std::path::PathBuf;
 
 const CONFIG: &str = include_str!("../configs/smoke_race.toml");
@@ -150,10 +152,10 @@ fn a_row_g_race_trains_exports_and_resumes() {
     let learned = |m: &IterationMetrics| {
         (
             m.reward_per_step,
-            m.surrogate_loss,
-            m.value_loss,
-            m.kl,
-            m.learning_rate,
+            m.update.surrogate_loss,
+            m.update.value_loss,
+            m.update.kl,
+            m.update.learning_rate,
         )
     };
     assert_eq!(learned(&read(&split)[0]), learned(&read(&whole)[0]));
@@ -271,7 +273,7 @@ fn a_recurrent_student_learns_from_the_stage1_teacher() {
     let warm = teacher_warm_start();
     let arch = firmware_core::policy::Architecture::table1(firmware_core::policy::TableRow::G);
     let device = Device::flex().autodiff();
-    let actor = RecurrentActor::new(&arch, 0.2, &mut host_trainer::model::init_rng(2), &device);
+    let actor = RecurrentActor::fresh(&arch, 0.2, &mut host_trainer::rng::init_rng(2), &device);
     let (_, rounds) = imitate_recurrent(actor, &arch, &c, &warm, &device, &mut |_, _| {}).unwrap();
     assert_eq!(rounds.len(), 4);
     for r in &rounds {
@@ -286,7 +288,7 @@ fn a_recurrent_student_learns_from_the_stage1_teacher() {
 
     let mut bad = warm.clone();
     bad.teacher_blob = Some("/nonexistent.blob".into());
-    let actor = RecurrentActor::new(&arch, 0.2, &mut host_trainer::model::init_rng(2), &device);
+    let actor = RecurrentActor::fresh(&arch, 0.2, &mut host_trainer::rng::init_rng(2), &device);
     let e = imitate_recurrent(actor, &arch, &c, &bad, &device, &mut |_, _| {}).unwrap_err();
     assert!(e.to_string().contains("/nonexistent.blob"), "{e}");
 }
@@ -300,8 +302,10 @@ fn a_quantization_aware_stage_ends_with_the_student_on_its_int8_grid() {
     use firmware_core::policy::{Architecture, TableRow};
     use host_trainer::config::WarmStart;
     use host_trainer::imitation::Imitate;
-    use host_trainer::model::{Actor, init_rng};
+    use host_trainer::model::Actor;
+    use host_trainer::nets::PolicyNet;
     use host_trainer::recurrent::RecurrentActor;
+    use host_trainer::rng::init_rng;
 
     fn check<A: Imitate>(row: TableRow, fresh: impl Fn(&Architecture, &Device) -> A) {
         let mut c = config();
@@ -339,10 +343,10 @@ fn a_quantization_aware_stage_ends_with_the_student_on_its_int8_grid() {
         assert_eq!(blob.dequantized(), weights, "row {}", row.letter());
     }
     check(TableRow::G, |arch, device| {
-        RecurrentActor::new(arch, 0.2, &mut init_rng(3), device)
+        RecurrentActor::fresh(arch, 0.2, &mut init_rng(3), device)
     });
     check(TableRow::C, |arch, device| {
-        Actor::new(arch, 0.2, &mut init_rng(3), device)
+        Actor::fresh(arch, 0.2, &mut init_rng(3), device)
     });
 }
 

@@ -7,8 +7,11 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::observation::Observation;
 use firmware_core::policy::{Architecture, Policy, PolicyState, TableRow};
-use host_trainer::model::{init_rng, values};
-use host_trainer::recurrent::{LstmState, RecurrentActor, push_flat_state};
+use host_trainer::model::values;
+use host_trainer::nets::{PolicyNet, ValueNet};
+use host_trainer::recurrent::{LstmState, RecurrentActor};
+use host_trainer::rng::init_rng;
+use host_trainer::rollout::push_flat_state;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
@@ -26,7 +29,7 @@ fn observation(values: &[f32]) -> Observation {
 fn max_diff_over_a_window(row: TableRow) -> f32 {
     let device = Device::flex();
     let arch = Architecture::table1(row);
-    let actor = RecurrentActor::new(&arch, 0.5, &mut init_rng(7), &device);
+    let actor = RecurrentActor::fresh(&arch, 0.5, &mut init_rng(7), &device);
     let payload = actor.net.payload();
     assert_eq!(payload.len(), arch.param_count());
     let back = RecurrentActor::from_payload(&arch, &payload, &actor.std(), &device).unwrap();
@@ -94,19 +97,21 @@ fn burn_lstm_actors_act_as_firmware_core_over_a_window() {
 
 use firmware_core::blob::AlignedBytes;
 use firmware_core::observation::ObservationSpec;
+use host_trainer::batch::Minibatch;
 use host_trainer::config::TrainConfig;
-use host_trainer::env::{Competition, EnvConfig, RaceConfig, TrainEnv};
-use host_trainer::ppo::{Minibatch, RecurrentLearner, Rollout};
+use host_trainer::ppo::RecurrentLearner;
 use host_trainer::recurrent::RecurrentCritic;
-use host_trainer::train::collect_rollout;
+use host_trainer::rollout::Rollout;
+use host_trainer::rollout::collect_rollout;
+use sitl::env::{Competition, EnvConfig, RaceConfig, VecEnv};
 
-fn race_env(envs: usize) -> TrainEnv {
+fn race_env(envs: usize) -> VecEnv {
     let raw = std::fs::read(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/../policies/stage1_guarded.blob"
     ))
     .unwrap();
-    TrainEnv::with_race(EnvConfig {
+    VecEnv::new(EnvConfig {
         observation: ObservationSpec::paper(
             firmware_core::observation::ObservationLayout::FullOpponent30,
         ),
@@ -132,8 +137,8 @@ fn the_update_sees_the_rollouts_recurrent_states() {
     let arch = Architecture::table1(TableRow::G);
     let config = TrainConfig::parse(include_str!("../configs/smoke_race.toml")).unwrap();
     let p = &config.ppo;
-    let actor = RecurrentActor::new(&arch, 0.5, &mut init_rng(3), &device);
-    let critic = RecurrentCritic::new(&arch, &mut init_rng(4), &device);
+    let actor = RecurrentActor::fresh(&arch, 0.5, &mut init_rng(3), &device);
+    let critic = RecurrentCritic::fresh(&arch, &mut init_rng(4), &device);
     let learner = RecurrentLearner::new(actor, critic, 1e-4, device.clone());
     let payload = learner.actor.net.payload();
     let policy = Policy::from_payload(&arch, &payload).unwrap();
@@ -209,10 +214,10 @@ fn the_update_sees_the_rollouts_recurrent_states() {
 #[test]
 fn two_halves_of_a_minibatch_give_its_gradient() {
     use burn::optim::GradientsParams;
-    use host_trainer::ppo::{flatten_gradients, transfer_gradients, weighted_sum};
+    use host_trainer::grads::{flatten_gradients, transfer_gradients, weighted_sum};
     let device = Device::flex().autodiff();
     let arch = Architecture::table1(TableRow::G);
-    let actor = RecurrentActor::new(&arch, 0.5, &mut init_rng(9), &device);
+    let actor = RecurrentActor::fresh(&arch, 0.5, &mut init_rng(9), &device);
     let (steps, envs, obs_dim) = (12usize, 5usize, 30usize);
     let mut rng = ChaCha8Rng::seed_from_u64(2);
     let obs: Vec<f32> = (0..steps * envs * obs_dim)

@@ -4,7 +4,10 @@
 
 use burn::tensor::Device;
 use host_trainer::config::TrainConfig;
-use host_trainer::train::{IterationMetrics, RunOptions, checkpoint_actor, run};
+use host_trainer::metrics::IterationMetrics;
+use host_trainer::nets::PolicyNet;
+use host_trainer::run_dir::checkpoint_actor;
+use host_trainer::train::{RunOptions, run};
 use std::path::{Path, PathBuf};
 
 const CONFIG: &str = include_str!("../configs/smoke.toml");

@@ -146,13 +146,13 @@ fn check_race(name: &str, config_name: &str) {
         config.run.keep_best,
         "{config_name}: the stage-2 runs keep the best"
     );
-    let metrics: Vec<host_trainer::train::IterationMetrics> = shipped_jsonl(name, "metrics");
+    let metrics: Vec<host_trainer::metrics::IterationMetrics> = shipped_jsonl(name, "metrics");
     assert_eq!(
         metrics.last().map(|m| m.iteration),
         Some(config.run.iterations),
         "{name}: the run finished"
     );
-    let best = host_trainer::train::best_evaluation(&metrics).unwrap();
+    let best = host_trainer::evaluation::best_evaluation(&metrics).unwrap();
     assert_eq!(
         iterations, best.iteration,
         "{name}: not the best evaluation"

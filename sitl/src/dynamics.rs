@@ -1,4 +1,4 @@
-//! cf2x rigid-body dynamics (SPEC "Vehicle").
+//! cf2x rigid-body dynamics (docs/DESIGN.md "Vehicle" and "Presets").
 //!
 //! Forces act at the four propeller positions along body +z (fᵢ = thrust_scale · kf · rpmᵢ²),
 //! the yaw torque is thrust_scale · km · Σ sᵢ rpmᵢ², gravity pulls along world −z. The state

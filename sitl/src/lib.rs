@@ -1,18 +1,30 @@
 //! # sitl
 //!
-//! The simulated world Overtake races in: cf2x quadrotor dynamics ([`dynamics`]), worlds of
-//! one or two drones on firmware-core's figure-8 with the crash rules ([`world`]), the pilots
-//! that fly them ([`pilot`]), the referee that scores 45 s episodes ([`referee`]), and
-//! evaluation over many seeded episodes with 95% intervals ([`eval`]), SVG plots
-//! ([`plot`]) and atomic file writes ([`files`]), and the MAVLink bridge that races
-//! firmware-core controllers as separate MAVLink endpoints in lockstep ([`bridge`]).
+//! The simulated world Overtake races in, and everything that steps it:
+//!
+//! | module | owns |
+//! |---|---|
+//! | [`dynamics`] | cf2x rigid-body dynamics (RK4 substeps) and the presets `paper`, `nominal`, `realistic` |
+//! | [`world`] | worlds of one or two drones on firmware-core's figure-8: stepping, gate passes, crash rules, spawn points |
+//! | [`env`] | the vectorised environments any learner steps: time trial and race, spawns, auto-reset, reward terms, time-outs |
+//! | [`pilot`] | who flies a drone: the classical baseline or a blob's controller (both firmware-core) |
+//! | [`referee`] | scoring of 45 s episodes: gates, crashes by cause, laps, progress, overtakes; the episode runner |
+//! | [`eval`] | many seeded episodes in parallel, aggregated with 95% intervals, as text and JSON (`sitl eval`) |
+//! | [`stats`] | means and Student-t 95% intervals |
+//! | [`quant`] | int8 against f32: action error and both blobs' race metrics (`sitl int8-check`) |
+//! | [`frames`] | ENU/FLU to NED/FRD conversions, for the bridge and for in-process pilots alike |
+//! | [`bridge`] | MAVLink lockstep races: a controller as an endpoint, the simulator as the clock, the ground station, framing and signing |
+//! | [`plot`] | standalone SVG plots: learning curves, the top-down view of a race |
+//! | [`files`] | atomic file writes |
 //!
 //! The track, the gate tests, the crash rules and the observation pipeline are
-//! firmware-core's: nothing here re-implements them.
+//! firmware-core's: nothing here re-implements them. Nothing here knows of a learning
+//! library: host-trainer (burn) and Python learners step [`env`] from outside.
 #![deny(missing_docs)]
 
 pub mod bridge;
 pub mod dynamics;
+pub mod env;
 pub mod eval;
 pub mod files;
 pub mod frames;

@@ -1,4 +1,4 @@
-//! The referee: scores evaluation episodes per SPEC "Metrics".
+//! The referee: scores evaluation episodes per docs/DESIGN.md "Metrics".
 //!
 //! An episode is 45 s of simulated flight. Drone 0 is the ego, drone 1 (in a race) the
 //! opponent. After a crash the race restarts from a fresh spawn and the clock runs on; in a

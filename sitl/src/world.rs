@@ -1,5 +1,5 @@
 //! The racing world: N cf2x drones on a track, their gate progress, and the crash rules
-//! (SPEC "Track"). Stepping integrates every drone and then judges the step with
+//! (docs/DESIGN.md "Gate rules"). Stepping integrates every drone and then judges the step with
 //! firmware-core's gate test and crash rules; nothing here re-implements them.
 //!
 //! **Layout.** A world's mutable state is a plain array `[Drone; N]` (one drone is 84 bytes:
@@ -45,7 +45,7 @@ impl Drone {
     }
 }
 
-/// Why a drone crashed (SPEC "Track": every cause ends in a reset).
+/// Why a drone crashed (docs/DESIGN.md "Gate rules": every cause ends in a reset).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CrashCause {
     /// Crossed the target gate's plane outside the opening.
@@ -109,7 +109,7 @@ impl DroneStep {
 /// Where and towards which gate a drone starts.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SpawnPoint {
-    /// Initial state (at rest for every spawn of SPEC).
+    /// Initial state (at rest in every spawn of docs/DESIGN.md "Spawns").
     pub state: VehicleState,
     /// The first gate to pass.
     pub target_gate: usize,
@@ -296,7 +296,7 @@ mod tests {
     }
 
     #[test]
-    fn spawns_follow_spec() {
+    fn spawns_follow_the_design() {
         let track = Track::figure_eight();
         for k in 0..6 {
             let [ego, opp] = stage2_spawn(&track, k);

@@ -1,4 +1,5 @@
-//! Validation of the cf2x dynamics against hand-derived answers (SPEC "Vehicle").
+//! Validation of the cf2x dynamics against hand-derived answers (docs/DESIGN.md "Vehicle",
+//! "Presets").
 
 use firmware_core::math::{Quat, Vec3};
 use firmware_core::vehicle::{ActionMap, MotorCommand, VehicleState};
@@ -15,7 +16,8 @@ fn at_rest() -> Body {
 fn hover_rpm_and_thrust_to_weight_per_preset() {
     let map = ActionMap::PAPER;
     let paper = Preset::paper();
-    // Half the force: hover at a ≈ +0.52, thrust-to-weight ≈ 1.62 at a = 1 (SPEC).
+    // Half the force: hover at a ≈ +0.52, thrust-to-weight ≈ 1.62 at a = 1
+    // (docs/DESIGN.md "Presets").
     let a = map.action_for_rpm(paper.hover_rpm());
     assert!((a - 0.519).abs() < 0.002, "paper hover action {a}");
     let tw = |p: &Preset, rpm: f32| (rpm / p.hover_rpm()).powi(2);
@@ -61,7 +63,8 @@ fn free_fall_is_exact() {
 }
 
 /// Differential thrust around hover, one axis at a time, must spin the body with the sign
-/// of SPEC's geometry: τ = Σ pᵢ × fᵢ and τz = km Σ sᵢ rpmᵢ² with s = (−1, +1, −1, +1).
+/// of the geometry in docs/DESIGN.md "Vehicle": τ = Σ pᵢ × fᵢ and τz = km Σ sᵢ rpmᵢ² with
+/// s = (−1, +1, −1, +1).
 #[test]
 fn torque_signs_follow_the_propeller_layout_and_spin() {
     let preset = Preset::nominal();

@@ -162,7 +162,8 @@ fn scaled_clip(v: [f64; 3], scale: f64) -> [f64; 3] {
     v.map(|x| (x / scale).clamp(-1.0, 1.0))
 }
 
-/// The paper's observation (17, 20 or 30 values) from SPEC's formulas, in f64.
+/// The paper's observation (17, 20 or 30 values) from the formulas of docs/DESIGN.md
+/// "Observations", in f64.
 pub fn observation(
     dim: usize,
     own: &State64,

@@ -1,5 +1,6 @@
-//! firmware-core's observation pipeline against SPEC's formulas evaluated in float64 with
-//! rotation matrices (tests/src/reference.rs), over random states of both drones.
+//! firmware-core's observation pipeline against the formulas of docs/DESIGN.md
+//! "Observations" evaluated in float64 with rotation matrices (tests/src/reference.rs), over
+//! random states of both drones.
 
 use firmware_core::math::{Quat, Vec3};
 use firmware_core::observation::{ObservationLayout, ObservationSpec};

@@ -52,11 +52,13 @@ fn parse_synth(args: &[&str]) -> Result<Command, String> {
         let value = it.next().ok_or_else(|| format!("{flag} needs a value"))?;
         match *flag {
             "--row" => {
+                let mut letters = value.chars();
                 row = Some(
-                    TableRow::ALL
-                        .into_iter()
-                        .find(|r| value.eq_ignore_ascii_case(&r.letter().to_string()))
-                        .ok_or_else(|| format!("--row takes A to G, not `{value}`"))?,
+                    match (letters.next(), letters.next()) {
+                        (Some(c), None) => TableRow::from_letter(c),
+                        _ => None,
+                    }
+                    .ok_or_else(|| format!("--row takes A to G, not `{value}`"))?,
                 )
             }
             "--seed" => {

@@ -1,5 +1,6 @@
 //! The MAVLink bridge: firmware-core controllers as MAVLink endpoints, raced in lockstep by
-//! the simulator (SPEC "SITL over MAVLink").
+//! the simulator. This module doc is the protocol's specification; docs/DESIGN.md
+//! "SITL over MAVLink" summarises it.
 //!
 //! # The protocol (MAVLink 2, `common` dialect, UDP on loopback)
 //!
@@ -51,8 +52,8 @@ pub const SIM_SYSTEM_ID: u8 = 250;
 pub const AUTOPILOT_COMPONENT_ID: u8 = 1;
 /// The simulator's component id (`MAV_COMP_ID_MISSIONPLANNER`-like: a ground-side tool).
 pub const SIM_COMPONENT_ID: u8 = 190;
-/// One unit of `HIL_ACTUATOR_CONTROLS.controls` (rpm). The cf2x tops out near 21,700 rpm,
-/// so commands sit in [0, 0.67].
+/// One unit of `HIL_ACTUATOR_CONTROLS.controls` (rpm). Commands follow paper eq. 3, which
+/// tops out at 26,043 rpm, so they sit in [0, 0.8).
 pub const MOTOR_RPM_FULL_SCALE: f32 = 32_768.0;
 
 /// The two messages carrying one vehicle's state at simulated time `t_ms`.

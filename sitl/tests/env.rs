@@ -5,8 +5,8 @@ use firmware_core::baseline::BaselineController;
 use firmware_core::observation::{ObservationLayout, ObservationSpec};
 use firmware_core::track::{CrashRules, Track};
 use firmware_core::vehicle::{ActionMap, MotorCommand};
-use host_trainer::env::{EnvConfig, OBS_DIM, TrainEnv};
 use sitl::dynamics::Preset;
+use sitl::env::{EnvConfig, OBS_DIM, VecEnv};
 use sitl::referee::SpawnMode;
 use sitl::world::{Drone, World, stage1_spawn};
 
@@ -22,7 +22,7 @@ fn config(num_envs: usize) -> EnvConfig {
 /// computation on an independent world stepped with the same motor command.
 #[test]
 fn reward_terms_of_one_step_by_hand() {
-    let mut env = TrainEnv::new(config(1));
+    let mut env = VecEnv::time_trial(config(1));
     let a = [0.6f32, 0.5, 0.55, 0.45];
     env.step(&a).unwrap();
     let stats = env.take_stats();
@@ -59,7 +59,7 @@ fn reward_terms_of_one_step_by_hand() {
 /// spawn's.
 #[test]
 fn a_crash_is_penalised_and_respawned() {
-    let mut env = TrainEnv::new(config(1));
+    let mut env = VecEnv::time_trial(config(1));
     let spawn_obs = env.observations().to_vec();
     let mut steps = 0;
     loop {
@@ -76,7 +76,7 @@ fn a_crash_is_penalised_and_respawned() {
     assert!((stats.terms.crash + 0.1).abs() < 1e-6);
     assert_eq!(env.observations(), &spawn_obs[..]);
     // Actions beyond [−1, 1] are clipped: −7 is the same fall.
-    let mut env2 = TrainEnv::new(config(1));
+    let mut env2 = VecEnv::time_trial(config(1));
     for _ in 0..steps {
         env2.step(&[-7.0; 4]).unwrap();
     }
@@ -85,7 +85,7 @@ fn a_crash_is_penalised_and_respawned() {
 
 #[test]
 fn a_time_out_is_not_a_crash() {
-    let mut env = TrainEnv::new(EnvConfig {
+    let mut env = VecEnv::time_trial(EnvConfig {
         episode_s: 0.1,
         ..config(2)
     });
@@ -101,7 +101,7 @@ fn a_time_out_is_not_a_crash() {
 
 #[test]
 fn wrong_action_shapes_are_refused() {
-    let mut env = TrainEnv::new(config(3));
+    let mut env = VecEnv::time_trial(config(3));
     let before = env.observations().to_vec();
     let err = env.step(&[0.0; 11]).unwrap_err();
     assert_eq!((err.expected, err.got), (12, 11));
@@ -117,7 +117,7 @@ fn deterministic_per_seed() {
             .build()
             .unwrap();
         pool.install(|| {
-            let mut env = TrainEnv::new(EnvConfig {
+            let mut env = VecEnv::time_trial(EnvConfig {
                 spawn: SpawnMode::AlongTrack,
                 random_initial_episode_length: true,
                 spawn_speed_mps: 0.0,
@@ -145,7 +145,7 @@ fn deterministic_per_seed() {
 /// 3 episodes of 15 s, gates passed without a crash, each pass rewarded close to 1·dt.
 #[test]
 fn the_baseline_flies_through_the_env() {
-    let mut env = TrainEnv::new(config(1));
+    let mut env = VecEnv::time_trial(config(1));
     let world = World::figure_eight(Preset::paper(), CrashRules::STAGE1);
     let mut pilot = BaselineController::new(
         sitl::pilot::baseline_config_for(&Preset::paper()),
@@ -180,7 +180,7 @@ fn the_baseline_flies_through_the_env() {
 
 use firmware_core::Controller;
 use firmware_core::blob::AlignedBytes;
-use host_trainer::env::{Competition, RaceConfig, dense_competition};
+use sitl::env::{Competition, RaceConfig, dense_competition};
 use sitl::world::stage2_spawn;
 
 fn opponent_blob() -> Vec<u8> {
@@ -204,12 +204,12 @@ fn race_config(num_envs: usize, competition: Competition) -> EnvConfig {
     }
 }
 
-/// One race step against a hand computation: SPEC's stage-2 spawn, the opponent commanded by
+/// One race step against a hand computation: the paper's stage-2 spawn (docs/DESIGN.md "Spawns"), the opponent commanded by
 /// an independent firmware-core controller on the same states, the ego's action, and every
 /// reward term, the dense competition term included, and the 30-value observation.
 #[test]
 fn one_race_step_by_hand() {
-    let mut env = TrainEnv::with_race(race_config(1, Competition::Dense)).unwrap();
+    let mut env = VecEnv::new(race_config(1, Competition::Dense)).unwrap();
     assert_eq!(env.obs_dim(), 30);
     let world = World::figure_eight(Preset::paper(), CrashRules::STAGE2);
     let spec = ObservationSpec::paper(ObservationLayout::FullOpponent30);
@@ -290,7 +290,7 @@ fn the_dense_competition_reward_pays_the_leader() {
 /// env, so a few of the 16 may have restarted within the 3 s.
 #[test]
 fn the_opponent_flies_away_from_a_hovering_ego() {
-    let mut env = TrainEnv::with_race(race_config(16, Competition::Dense)).unwrap();
+    let mut env = VecEnv::new(race_config(16, Competition::Dense)).unwrap();
     let hover = ActionMap::PAPER.action_for_rpm(Preset::paper().hover_rpm());
     let a = vec![hover; 16 * 4];
     for _ in 0..150 {
@@ -320,7 +320,7 @@ fn a_bad_opponent_is_refused() {
     let last = raw.len() - 1;
     raw[last] ^= 0x40;
     c.race.as_mut().unwrap().opponent = AlignedBytes::new(&raw);
-    let e = TrainEnv::with_race(c).unwrap_err();
+    let e = VecEnv::new(c).unwrap_err();
     assert!(e.to_string().contains("opponent"), "{e}");
 }
 
@@ -329,7 +329,7 @@ fn a_bad_opponent_is_refused() {
 /// the opponent starts 1 m ahead, and the same whichever way the ego faces.
 #[test]
 fn the_lead_competition_term_is_the_referees_lead() {
-    let mut env = TrainEnv::with_race(race_config(1, Competition::Lead)).unwrap();
+    let mut env = VecEnv::new(race_config(1, Competition::Lead)).unwrap();
     let world = World::figure_eight(Preset::paper(), CrashRules::STAGE2);
     let spec = ObservationSpec::paper(ObservationLayout::FullOpponent30);
     let gate = (0..6)

@@ -1,14 +1,14 @@
 //! The training environment's step rate: 4,096 stage-1 envs (dynamics, gate test, crash
 //! rules, rewards with their terms, respawns, observations), rayon over the cores.
 //!
-//! `cargo bench -p host-trainer --bench env_step`
+//! `cargo bench -p sitl --bench env_step`
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
-use host_trainer::env::{EnvConfig, TrainEnv};
+use sitl::env::{EnvConfig, VecEnv};
 
 fn bench(c: &mut Criterion) {
     let n = 4096;
-    let mut env = TrainEnv::new(EnvConfig::paper_along_track(n, 0));
+    let mut env = VecEnv::time_trial(EnvConfig::paper_along_track(n, 0));
     // Near-hover actions with a per-env differential, as an early policy flies.
     let actions: Vec<f32> = (0..n * 4)
         .map(|i| 0.52 + 0.05 * ((i % 9) as f32 - 4.0) / 4.0)

@@ -1,11 +1,13 @@
-//! The vectorised training environment: many independent sitl worlds stepped in parallel
-//! with rayon, rewards per SPEC "Rewards" with every term kept apart for the logs, and
-//! observations built only by firmware-core's pipeline (the one the controller runs).
+//! The vectorised environments every learner steps (host-trainer's PPO, or Python through
+//! a binding): many independent worlds stepped in parallel with rayon, rewards per
+//! docs/DESIGN.md "Rewards" with every term kept apart for the logs, and observations built
+//! only by firmware-core's pipeline (the one the controller runs). Nothing here knows of a
+//! learning library.
 //!
 //! Stage 1 (time trial): one drone per world. Each env auto-resets: after a crash or a
 //! time-out its slot is respawned and the observation returned is the new episode's first.
 //!
-//! Stage 2 (race, [`EnvConfig::race`]): the ego and an opponent in one world, spawned as SPEC's
+//! Stage 2 (race, [`EnvConfig::race`]): the ego and an opponent in one world, spawned as the paper's
 //! stage 2 (a random gate k, the opponent 1 m and the ego 2 m before it, at rest). The
 //! opponent is a frozen blob flown by firmware-core's [`Controller`], the code a flight
 //! controller runs, deterministically (its Gaussian mean). An episode ends as a race restarts
@@ -13,17 +15,11 @@
 //! with the crash penalty; the opponent crashing alone is a truncation (`timeouts`, so it is
 //! bootstrapped with γ·V): the ego did nothing wrong and its future was cut short.
 //!
-//! **Reward of a step** (SPEC, paper eq. 4–5, every term × dt):
-//! - progress `λ₁ (d_{t−1} − d_t)`, both distances to the gate the drone was flying to during
-//!   the step (so a gate pass is not a jump to the next gate's distance);
-//! - command `− λ₂ ‖a_t‖ − λ₃ ‖a_t − a_{t−1}‖²` on the clipped actions the motors got;
-//! - pass `1 − ‖p_t − g‖` when the step passed gate g;
-//! - crash `− 5` when the step crashed (gate frame, ground, bounds, non-finite);
-//! - stage 2, competition `λ_c r_comp` (paper λ_c = 0.5): dense `tanh(−0.1 d_fwd)` with
-//!   `d_fwd` the opponent's position relative to the ego along the ego's body x after the step
-//!   (eq. 6), or sparse `1` when the step passed a gate while ahead of the opponent in gates
-//!   passed since the spawn (eq. 7). Like progress, it is not paid on the ego's crash step.
+//! **The reward** of a step, term by term, is [`reward`]'s (docs/DESIGN.md "Rewards").
 
+use crate::dynamics::Preset;
+use crate::referee::{SpawnMode, TrackProgress};
+use crate::world::{Drone, World};
 use firmware_core::Controller;
 use firmware_core::baseline::BaselineController;
 use firmware_core::blob::AlignedBytes;
@@ -35,74 +31,14 @@ use firmware_core::vehicle::ActionMap;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use sitl::dynamics::Preset;
-use sitl::referee::{SpawnMode, TrackProgress};
-use sitl::world::{Drone, World};
+
+mod reward;
+
+pub use reward::{Competition, RewardTerms, RewardWeights, dense_competition};
+use reward::{Rewards, StepOutcome};
 
 /// Envs per rayon task.
 const CHUNK: usize = 128;
-
-/// The reward's weights (SPEC "Rewards"; defaults are the paper's).
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct RewardWeights {
-    /// λ₁, progress toward the target gate (per m). Paper 0.5.
-    pub progress: f32,
-    /// λ₂, action magnitude ‖a‖. Paper 0.0005.
-    pub command: f32,
-    /// λ₃, action change ‖a_t − a_{t−1}‖². Paper 0.0002.
-    pub smoothness: f32,
-    /// Scale of the pass reward `1 − ‖rel_gate‖`. Paper 1.
-    pub pass: f32,
-    /// Crash penalty. Paper 5.
-    pub crash: f32,
-}
-
-impl Default for RewardWeights {
-    fn default() -> Self {
-        Self {
-            progress: 0.5,
-            command: 0.0005,
-            smoothness: 0.0002,
-            pass: 1.0,
-            crash: 5.0,
-        }
-    }
-}
-
-/// The reward's terms summed over steps and envs, each already × dt and signed as it enters
-/// the reward (so `total` is their sum).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct RewardTerms {
-    /// Progress toward the target gate.
-    pub progress: f64,
-    /// − action magnitude.
-    pub command: f64,
-    /// − action change.
-    pub smoothness: f64,
-    /// Gate passes.
-    pub pass: f64,
-    /// − crashes.
-    pub crash: f64,
-    /// Stage 2: the competition reward (0 in a time trial).
-    pub competition: f64,
-}
-
-impl RewardTerms {
-    /// Sum of the terms.
-    pub fn total(&self) -> f64 {
-        self.progress + self.command + self.smoothness + self.pass + self.crash + self.competition
-    }
-
-    fn add(&mut self, o: &Self) {
-        self.progress += o.progress;
-        self.command += o.command;
-        self.smoothness += o.smoothness;
-        self.pass += o.pass;
-        self.crash += o.crash;
-        self.competition += o.competition;
-    }
-}
 
 /// How the training environment is built.
 #[derive(Clone, Debug)]
@@ -114,7 +50,7 @@ pub struct EnvConfig {
     /// Where episodes start: the paper's fixed stage-1 spawn or along the track.
     pub spawn: SpawnMode,
     /// Highest initial speed (m/s) of a spawn, along its heading, drawn uniformly from
-    /// [0, this]; 0 spawns at rest as every spawn of SPEC does. Not part of the paper: a
+    /// [0, this]; 0 spawns at rest as the paper's spawns do. Not part of the paper: a
     /// drone already moving toward its gate sees progress reward from its first step (see
     /// docs/TRAINING.md).
     pub spawn_speed_mps: f32,
@@ -133,25 +69,9 @@ pub struct EnvConfig {
     pub observation: ObservationSpec,
     /// Seed of the spawns and initial lengths (env i uses stream i).
     pub seed: u64,
-    /// Stage 2: race an opponent (`None`: a time trial). The spawn is then SPEC's stage-2
+    /// Stage 2: race an opponent (`None`: a time trial). The spawn is then the paper's stage-2
     /// spawn whatever `spawn`, `spawn_speed_mps` and `stage1_fraction` say.
     pub race: Option<RaceConfig>,
-}
-
-/// The competition reward of stage 2 (paper eq. 6 and 7).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Competition {
-    /// `tanh(−0.1 d_fwd)` every step (eq. 6; the paper's Table 1 rows B, C, E-G).
-    Dense,
-    /// `1` on a gate passed while ahead in gates (eq. 7; row D).
-    Sparse,
-    /// `tanh(0.1 · lead)` every step, `lead` the ego's progress along the track minus the
-    /// opponent's (m, as the referee measures overtakes). Not in the paper: eq. 6 measures the
-    /// opponent along the ego's body x, which an ego can earn by facing away from the
-    /// opponent instead of racing (docs/TRAINING.md, s2-g3); this form pays only for being
-    /// ahead on the track.
-    Lead,
 }
 
 /// The opponent and the competition reward of a stage-2 environment.
@@ -181,7 +101,7 @@ impl std::error::Error for OpponentError {}
 /// `bytes` for the rest of the process, one copy per distinct blob: the opponent's
 /// [`Controller`] views its blob's weights in place (as in flash), so every env's controller
 /// borrows one copy that must outlive the environments, which are rebuilt during a run.
-pub(crate) fn interned(bytes: &AlignedBytes) -> &'static AlignedBytes {
+pub fn interned(bytes: &AlignedBytes) -> &'static AlignedBytes {
     static BLOBS: std::sync::Mutex<Vec<&'static AlignedBytes>> = std::sync::Mutex::new(Vec::new());
     let mut blobs = BLOBS
         .lock()
@@ -203,7 +123,7 @@ struct Race {
 }
 
 impl EnvConfig {
-    /// `num_envs` envs with the paper's settings (preset, SPEC reward, observation spec,
+    /// `num_envs` envs with the paper's settings (preset, the paper's reward, observation spec,
     /// 15 s episodes), spawned along the track at rest with random initial episode lengths,
     /// seeded with `seed`: the base that configs and tests adjust.
     pub fn paper_along_track(num_envs: usize, seed: u64) -> Self {
@@ -225,7 +145,7 @@ impl EnvConfig {
     }
 }
 
-/// Per-step statistics of the whole batch, drained by [`TrainEnv::take_stats`].
+/// Per-step statistics of the whole batch, drained by [`VecEnv::take_stats`].
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct EnvStats {
     /// Env-steps taken.
@@ -243,7 +163,7 @@ pub struct EnvStats {
 }
 
 impl EnvStats {
-    /// Gates passed / (gates passed + crashes): the success rate of SPEC "Metrics" over the
+    /// Gates passed / (gates passed + crashes): the success rate of docs/DESIGN.md "Metrics" over the
     /// steps counted (each crash meets one gate it did not pass).
     pub fn success_rate(&self) -> f64 {
         let met = self.gates_passed + self.crashes;
@@ -280,7 +200,7 @@ struct Slot {
 
 /// Many stage-1 or stage-2 worlds with their observations, rewards and episode ends.
 #[derive(Clone, Debug)]
-pub struct TrainEnv {
+pub struct VecEnv {
     world: World,
     progress: TrackProgress,
     spec: ObservationSpec,
@@ -299,15 +219,16 @@ pub struct TrainEnv {
 /// Observation size of stage 1.
 pub const OBS_DIM: usize = 17;
 
-impl TrainEnv {
+impl VecEnv {
     /// `config.num_envs` stage-1 envs, each spawned (at a random point of its first episode
-    /// when `random_initial_episode_length`). For a race use [`TrainEnv::with_race`].
-    pub fn new(config: EnvConfig) -> Self {
+    /// when `random_initial_episode_length`); `config.race` is ignored. For a race use
+    /// [`VecEnv::new`].
+    pub fn time_trial(config: EnvConfig) -> Self {
         let config = EnvConfig {
             race: None,
             ..config
         };
-        match Self::with_race(config) {
+        match Self::new(config) {
             Ok(env) => env,
             // Without a race there is no blob to refuse.
             Err(_) => unreachable!("a time trial has no opponent"),
@@ -317,7 +238,7 @@ impl TrainEnv {
     /// `config.num_envs` envs of a time trial or, with `config.race`, of a race; an opponent
     /// blob that does not validate, or whose policy would need to see an opponent itself, is
     /// refused here.
-    pub fn with_race(config: EnvConfig) -> Result<Self, OpponentError> {
+    pub fn new(config: EnvConfig) -> Result<Self, OpponentError> {
         let rules = if config.race.is_some() {
             CrashRules::STAGE2
         } else {
@@ -587,7 +508,7 @@ impl TrainEnv {
     }
 }
 
-/// The actions given to [`TrainEnv::step`] do not have `num_envs × 4` values.
+/// The actions given to [`VecEnv::step`] do not have `num_envs × 4` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ActionShapeError {
     /// Values expected.
@@ -617,7 +538,7 @@ struct SpawnRule {
     race: bool,
 }
 
-/// A new episode in `slot`: a spawn drawn from its generator. In a race, SPEC's stage-2 spawn
+/// A new episode in `slot`: a spawn drawn from its generator. In a race, the paper's stage-2 spawn
 /// for both drones, the opponent's controller reset to their gate. In a time trial, the
 /// stage-1 spawn with probability `stage1_fraction`, otherwise `mode`'s, moving along its
 /// heading at a speed drawn from [0, `max_speed_mps`] when that is positive. The previous
@@ -645,20 +566,6 @@ fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut
     slot.steps = 0;
 }
 
-/// The reward's weights and, in a race, the competition term and its weight.
-#[derive(Clone, Copy, Debug)]
-struct Rewards {
-    weights: RewardWeights,
-    competition: Option<(Competition, f32)>,
-}
-
-/// `tanh(−0.1 d_fwd)` (paper eq. 6): `d_fwd` is the opponent's position relative to the ego
-/// along the ego's body x (m); positive when the ego leads.
-pub fn dense_competition(ego: &firmware_core::vehicle::VehicleState, opponent_m: Vec3) -> f32 {
-    let rel_body = ego.attitude.conjugate().rotate(opponent_m - ego.position_m);
-    (-0.1 * rel_body.x).tanh()
-}
-
 /// Steps one env; returns (reward, crashed, timed out).
 fn step_slot(
     world: &World,
@@ -669,7 +576,6 @@ fn step_slot(
     slot: &mut Slot,
     action: &[f32; ACTION_DIM],
 ) -> (f32, bool, bool) {
-    let w = &rewards.weights;
     let d = &slot.drones[0];
     let gate = world.track.gate(d.progress.target).center_m;
     let before = d.position_m();
@@ -687,48 +593,23 @@ fn step_slot(
             (e, false)
         }
     };
-    let after = slot.drones[0].position_m();
-    let dt = world.dt_s;
-    let norm = |v: &[f32; ACTION_DIM]| v.iter().map(|x| x * x).sum::<f32>();
-    let change: [f32; ACTION_DIM] = core::array::from_fn(|k| action[k] - slot.previous_action[k]);
     let crashed = result.crash.is_some();
-    let mut terms = RewardTerms {
-        command: f64::from(-dt * w.command * norm(action).sqrt()),
-        smoothness: f64::from(-dt * w.smoothness * norm(&change)),
-        ..RewardTerms::default()
-    };
-    if crashed {
-        terms.crash = f64::from(-dt * w.crash);
-    } else {
-        terms.progress =
-            f64::from(dt * w.progress * ((before - gate).norm() - (after - gate).norm()));
-        let passed = result.passed_gate().is_some();
-        if passed {
-            terms.pass = f64::from(dt * w.pass * (1.0 - (after - gate).norm()));
-            slot.stats.gates_passed += 1;
-        }
-        let [ego, opp] = &slot.drones;
-        terms.competition = match rewards.competition {
-            None => 0.0,
-            Some((Competition::Dense, weight)) => {
-                f64::from(dt * weight * dense_competition(&ego.body.state, opp.position_m()))
-            }
-            Some((Competition::Sparse, weight)) => {
-                let ahead = ego.progress.gates_passed > opp.progress.gates_passed;
-                if passed && ahead {
-                    f64::from(dt * weight)
-                } else {
-                    0.0
-                }
-            }
-            Some((Competition::Lead, weight)) => {
-                let [se, so] = slot.spawn_segment;
-                let lead = progress.progress_m(se, ego.progress.gates_passed, ego.position_m())
-                    - progress.progress_m(so, opp.progress.gates_passed, opp.position_m());
-                f64::from(dt * weight * (0.1 * lead).tanh())
-            }
-        };
-    }
+    let passed = !crashed && result.passed_gate().is_some();
+    let [ego, opponent] = &slot.drones;
+    let terms = rewards.terms(&StepOutcome {
+        dt_s: world.dt_s,
+        gate_m: gate,
+        before_m: before,
+        action,
+        previous_action: &slot.previous_action,
+        crashed,
+        passed,
+        ego,
+        opponent,
+        spawn_segment: slot.spawn_segment,
+        progress,
+    });
+    slot.stats.gates_passed += u64::from(passed);
     slot.previous_action = *action;
     slot.steps += 1;
     // The opponent crashing alone cuts the episode short without the ego's doing: a

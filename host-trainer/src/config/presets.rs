@@ -1,0 +1,163 @@
+//! The configurations in code: every section's `Default` (the paper's stage 1, RSL-RL's PPO
+//! settings) and the named presets of whole runs, [`TrainConfig::paper`] and
+//! [`TrainConfig::ours`] (`host-trainer/tests/config.rs` holds each equal to its TOML file).
+
+use super::{
+    EnvSection, PpoConfig, RunConfig, TrainConfig, WarmStart, default_eval_every,
+    default_eval_races, default_min_learning_rate, default_velocity_scale, one,
+};
+use sitl::env::RewardWeights;
+
+impl Default for TrainConfig {
+    /// The paper's stage-1 run: [`TrainConfig::paper`].
+    fn default() -> Self {
+        Self::paper()
+    }
+}
+
+impl TrainConfig {
+    /// The paper's stage-1 run (`configs/stage1_paper.toml`): row A from a random network,
+    /// 8,192 envs spawned at the paper's stage-1 spawn, 15 s episodes, 100 steps per env,
+    /// 5 epochs of 4 minibatches, lr 1e-4 with the adaptive KL target 0.01, entropy 0.01,
+    /// σ₀ 1, 1,500 iterations (1.2 billion samples): far beyond two CPU cores.
+    pub fn paper() -> Self {
+        Self {
+            run: RunConfig {
+                name: "stage1-paper".into(),
+                iterations: 1500,
+                checkpoint_every: 50,
+                ..RunConfig::default()
+            },
+            env: EnvSection::default(),
+            ppo: PpoConfig::default(),
+            reward: RewardWeights::default(),
+            warm_start: None,
+            guard: None,
+            race: None,
+        }
+    }
+
+    /// This project's stage-1 pipeline (`configs/stage1.toml`): 512 envs spawned along the
+    /// track at up to 8 m/s (a fifth at the paper's spawn), the own velocity observed at
+    /// 12 m/s full scale, 50 steps per env, 2 minibatches, KL target 0.002, no entropy bonus,
+    /// σ₀ 0.2 and a hover-biased output, after the imitation warm start
+    /// ([`WarmStart::default`]); 900 iterations.
+    pub fn ours() -> Self {
+        Self {
+            run: RunConfig {
+                name: "stage1".into(),
+                iterations: 900,
+                checkpoint_every: 20,
+                ..RunConfig::default()
+            },
+            env: EnvSection {
+                num_envs: 512,
+                spawn: "along-track".into(),
+                velocity_scale_mps: 12.0,
+                spawn_speed_mps: 8.0,
+                stage1_fraction: 0.2,
+                ..EnvSection::default()
+            },
+            ppo: PpoConfig {
+                steps_per_env: 50,
+                minibatches: 2,
+                entropy_coef: 0.0,
+                desired_kl: Some(0.002),
+                init_std: 0.2,
+                init_hover: true,
+                ..PpoConfig::default()
+            },
+            reward: RewardWeights::default(),
+            warm_start: Some(WarmStart::default()),
+            guard: None,
+            race: None,
+        }
+    }
+}
+
+impl Default for RunConfig {
+    /// Row A, seed 1, 1,500 iterations, a checkpoint every 50 and an evaluation every 10,
+    /// 4 evaluation races on seed 0, the last actor exported.
+    fn default() -> Self {
+        Self {
+            name: "stage1".into(),
+            row: 'A',
+            seed: 1,
+            iterations: 1500,
+            checkpoint_every: 50,
+            eval_every: default_eval_every(),
+            eval_races: default_eval_races(),
+            eval_seed: 0,
+            keep_best: false,
+        }
+    }
+}
+
+impl Default for EnvSection {
+    /// The paper's: 8,192 envs of the `paper` preset from the stage-1 spawn at rest, 15 s
+    /// episodes with random initial lengths, velocities observed at 3 m/s full scale.
+    fn default() -> Self {
+        Self {
+            num_envs: 8192,
+            preset: "paper".into(),
+            spawn: "stage1".into(),
+            episode_s: 15.0,
+            random_initial_episode_length: true,
+            velocity_scale_mps: default_velocity_scale(),
+            spawn_speed_mps: 0.0,
+            stage1_fraction: 0.0,
+        }
+    }
+}
+
+impl Default for PpoConfig {
+    /// RSL-RL's and the paper's stage 1: 100 steps per env, 5 epochs × 4 minibatches, clip
+    /// 0.2, γ 0.99, λ 0.95, value coefficient 1, entropy 0.01, lr 1e-4 adapted to a KL of
+    /// 0.01 (floor 1e-5), gradient norm 1, σ₀ 1, PyTorch's initialisation.
+    fn default() -> Self {
+        Self {
+            steps_per_env: 100,
+            epochs: 5,
+            minibatches: 4,
+            clip: 0.2,
+            gamma: 0.99,
+            lambda: 0.95,
+            value_coef: 1.0,
+            entropy_coef: 0.01,
+            learning_rate: 1e-4,
+            desired_kl: Some(0.01),
+            max_grad_norm: 1.0,
+            min_learning_rate: default_min_learning_rate(),
+            critic_learning_rate: None,
+            init_std: 1.0,
+            init_hover: false,
+        }
+    }
+}
+
+impl Default for WarmStart {
+    /// The stage-1 student's (`configs/stage1.toml`): 40 DAgger rounds of 50 steps of the
+    /// classical baseline at 9 m/s, 3 epochs of minibatches of 2,048 over the last 400,000
+    /// samples at lr 1e-3, the student's actions with σ 0.1 noise, then 30 critic-only
+    /// iterations; no refinement, no round selection.
+    fn default() -> Self {
+        Self {
+            teacher_cruise_mps: 9.0,
+            teacher_blob: None,
+            student: None,
+            rounds: 40,
+            steps_per_env: 50,
+            epochs: 3,
+            minibatch: 2048,
+            max_samples: 400_000,
+            learning_rate: 1e-3,
+            learning_rate_final: None,
+            teacher_share_start: one(),
+            student_noise_std: 0.1,
+            critic_iterations: 30,
+            quantization_aware: false,
+            keep_best_round: false,
+            refine: Vec::new(),
+        }
+    }
+}

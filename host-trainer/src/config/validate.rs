@@ -1,0 +1,171 @@
+//! The checks a configuration passes before a run starts, section by section; each refusal
+//! names the field and the range it must be in.
+
+use super::{ConfigError, TrainConfig, WarmStart};
+use sitl::env::Competition;
+
+fn bad(m: impl Into<String>) -> Result<(), ConfigError> {
+    Err(ConfigError::Invalid(m.into()))
+}
+
+/// Every check, in the order the sections are read.
+pub(super) fn validate(c: &TrainConfig) -> Result<(), ConfigError> {
+    run(c)?;
+    env_and_race(c)?;
+    warm_start(c)?;
+    if let Some(g) = &c.guard {
+        if g.envs == 0 || g.steps == 0 {
+            return bad("guard.envs and guard.steps must be positive");
+        }
+    }
+    env_ranges(c)?;
+    ppo(c)
+}
+
+fn run(c: &TrainConfig) -> Result<(), ConfigError> {
+    if c.run.name.is_empty() || c.run.name.len() > 32 {
+        return bad("run.name must be 1 to 32 bytes");
+    }
+    if !('A'..='G').contains(&c.run.row) {
+        return bad(format!("run.row '{}' is not a Table 1 row A-G", c.run.row));
+    }
+    if c.run.iterations == 0 || c.run.checkpoint_every == 0 || c.run.eval_every == 0 {
+        return bad("run.iterations, checkpoint_every and eval_every must be positive");
+    }
+    if c.run.eval_races == 0 {
+        return bad("run.eval_races must be positive");
+    }
+    Ok(())
+}
+
+/// The preset, the spawn, and the row against the race section (row A races nobody, B-G
+/// race; row D is the sparse competition reward).
+fn env_and_race(c: &TrainConfig) -> Result<(), ConfigError> {
+    if sitl::dynamics::Preset::by_name(&c.env.preset).is_none() {
+        return bad(format!(
+            "env.preset '{}' (paper, nominal, realistic)",
+            c.env.preset
+        ));
+    }
+    let race = c.race.is_some();
+    match (c.env.spawn.as_str(), race) {
+        ("stage1" | "along-track", false) | ("stage2", true) => {}
+        (s, false) => return bad(format!("env.spawn '{s}' (stage1, along-track)")),
+        (s, true) => {
+            return bad(format!(
+                "env.spawn '{s}': a [race] starts at the paper's stage-2 spawn, write \"stage2\""
+            ));
+        }
+    }
+    if (c.run.row == 'A') == race {
+        return bad(format!(
+            "run.row '{}' {}",
+            c.run.row,
+            if race {
+                "is the time-trial row; a [race] trains rows B to G"
+            } else {
+                "observes an opponent and needs a [race] section"
+            }
+        ));
+    }
+    if let Some(r) = &c.race {
+        if r.opponent.is_empty() {
+            return bad("race.opponent must name a blob");
+        }
+        if !(r.competition_weight.is_finite() && r.competition_weight >= 0.0) {
+            return bad("race.competition_weight must be finite and >= 0");
+        }
+        let sparse = r.competition == Competition::Sparse;
+        if (c.run.row == 'D') != sparse {
+            return bad(format!(
+                "run.row '{}' with the {} competition reward: Table 1's row D is the sparse one, B, C and E-G the dense",
+                c.run.row,
+                if sparse { "sparse" } else { "dense" }
+            ));
+        }
+    }
+    if !(c.env.velocity_scale_mps.is_finite() && c.env.velocity_scale_mps > 0.0) {
+        return bad("env.velocity_scale_mps must be positive");
+    }
+    Ok(())
+}
+
+/// The warm start and every refine stage.
+fn warm_start(c: &TrainConfig) -> Result<(), ConfigError> {
+    for w in c.warm_start.iter().flat_map(WarmStart::stages) {
+        if w.rounds == 0
+            || w.steps_per_env == 0
+            || w.epochs == 0
+            || w.minibatch == 0
+            || w.max_samples == 0
+        {
+            return bad(
+                "warm_start.rounds, steps_per_env, epochs, minibatch and max_samples (and \
+                 every refine stage's) must be positive",
+            );
+        }
+        if !(w.learning_rate > 0.0 && w.teacher_cruise_mps > 0.0 && w.student_noise_std >= 0.0) {
+            return bad("warm_start.learning_rate and teacher_cruise_mps must be positive");
+        }
+        if w.learning_rate_final
+            .is_some_and(|l| l.is_nan() || l <= 0.0)
+        {
+            return bad(
+                "warm_start.learning_rate_final (and every refine stage's) must be positive",
+            );
+        }
+        if !(0.0..=1.0).contains(&w.teacher_share_start) {
+            return bad("warm_start.teacher_share_start must be in [0, 1]");
+        }
+    }
+    Ok(())
+}
+
+fn env_ranges(c: &TrainConfig) -> Result<(), ConfigError> {
+    if !(0.0..=1.0).contains(&c.env.stage1_fraction) {
+        return bad("env.stage1_fraction must be in [0, 1]");
+    }
+    if !(0.0..=20.0).contains(&c.env.spawn_speed_mps) {
+        return bad("env.spawn_speed_mps must be in [0, 20]");
+    }
+    if c.env.num_envs == 0 || c.env.episode_s.is_nan() || c.env.episode_s <= 0.0 {
+        return bad("env.num_envs and env.episode_s must be positive");
+    }
+    Ok(())
+}
+
+fn ppo(c: &TrainConfig) -> Result<(), ConfigError> {
+    let p = &c.ppo;
+    if p.steps_per_env == 0 || p.epochs == 0 || p.minibatches == 0 {
+        return bad("ppo.steps_per_env, epochs and minibatches must be positive");
+    }
+    if !(c.env.num_envs * p.steps_per_env).is_multiple_of(p.minibatches) {
+        return bad(format!(
+            "the rollout ({} envs x {} steps) does not split into {} equal minibatches",
+            c.env.num_envs, p.steps_per_env, p.minibatches
+        ));
+    }
+    let unit = |v: f32| (0.0..=1.0).contains(&v);
+    if !(unit(p.gamma) && unit(p.lambda) && p.clip > 0.0 && p.learning_rate > 0.0) {
+        return bad("ppo.gamma and lambda must be in [0, 1], clip and learning_rate > 0");
+    }
+    if !(p.init_std.is_finite() && p.init_std > 0.0 && p.max_grad_norm > 0.0) {
+        return bad("ppo.init_std and max_grad_norm must be positive and finite");
+    }
+    let finite_nonneg = |v: f32| v.is_finite() && v >= 0.0;
+    if !(finite_nonneg(p.value_coef) && finite_nonneg(p.entropy_coef)) {
+        return bad("ppo.value_coef and entropy_coef must be finite and >= 0");
+    }
+    if p.desired_kl.is_some_and(|k| !(k.is_finite() && k > 0.0)) {
+        return bad("ppo.desired_kl must be positive");
+    }
+    if !(p.min_learning_rate > 0.0 && p.min_learning_rate <= p.learning_rate) {
+        return bad("ppo.min_learning_rate must be in (0, learning_rate]");
+    }
+    if p.critic_learning_rate
+        .is_some_and(|r| !(r.is_finite() && r > 0.0))
+    {
+        return bad("ppo.critic_learning_rate must be positive");
+    }
+    Ok(())
+}

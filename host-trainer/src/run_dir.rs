@@ -1,0 +1,373 @@
+//! A run's output directory (`--out`): what is written where, and the checkpoints that make
+//! a run resumable.
+//!
+//! - `config.toml`: the configuration the run used;
+//! - `metrics.jsonl`: one JSON object per iteration ([`IterationMetrics`]: reward terms,
+//!   success, crashes, losses, KL, learning rate, σ, speed) and, every `run.eval_every`
+//!   iterations, the referee's evaluation of the current policy (`eval_*` keys);
+//! - `imitation.jsonl` and `warm_start.blob`: the warm start's rounds and its student;
+//! - `checkpoints/iter_NNNNNN/` (networks and Adam states as burnpack files, `state.json`) and
+//!   `checkpoints/latest`, the name of the newest complete checkpoint, replaced atomically
+//!   after every file of the checkpoint is on disk: a kill at any moment leaves the previous
+//!   checkpoint usable, and `--resume` loses at most `run.checkpoint_every` iterations;
+//! - `checkpoints/best_iter_NNNNNN.{blob,safetensors}` (`run.keep_best`) and
+//!   `checkpoints/warm_start_round_NNN.blob` (`warm_start.keep_best_round`): candidates for
+//!   export, never overwritten, so a resume finds them;
+//! - at the end: `<name>.blob` (firmware-core blob with provenance: run name, seed,
+//!   iterations, preset, config hash), `<name>.safetensors` (the actor with RSL-RL's names)
+//!   and `learning_curves.svg`.
+//!
+//! **Resume.** The networks, Adam states, learning rate, iteration, metrics and the
+//! generators of the action noise and of the minibatches are restored. The environments are
+//! not stored: a resumed run respawns them (with a seed derived from the iteration and random
+//! initial episode lengths), so its trajectory differs from an uninterrupted run's from that
+//! point, its learning state does not.
+
+use crate::config::TrainConfig;
+use crate::error::{TrainError, io};
+use crate::export::actor_blob;
+use crate::metrics::{IterationMetrics, learning_curves};
+use crate::model::{Actor, Critic};
+use crate::nets::{PolicyNet, ValueNet};
+use crate::ppo::{Learner, adam};
+use crate::recurrent::{RecurrentActor, RecurrentCritic};
+use crate::rng::{init_rng, restore_rng, rng_state};
+use burn::tensor::Device;
+use firmware_core::policy::Architecture;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use sitl::files::write_atomically;
+use std::path::{Path, PathBuf};
+
+/// Everything that evolves during a run, and what a checkpoint keeps of it.
+pub(crate) struct RunState<A = Actor, C = Critic> {
+    /// The networks, their Adam states and the learning rate.
+    pub learner: Learner<A, C>,
+    /// Iterations done.
+    pub iteration: u32,
+    /// Env-steps trained on so far.
+    pub samples: u64,
+    /// Wall-clock seconds of training so far (all invocations).
+    pub wall_s: f64,
+    /// The action noise of the rollouts.
+    pub noise_rng: ChaCha8Rng,
+    /// The minibatch order of the updates.
+    pub shuffle_rng: ChaCha8Rng,
+    /// Every iteration's metrics so far.
+    pub history: Vec<IterationMetrics>,
+}
+
+/// What `checkpoints/iter_N/state.json` holds besides the networks.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+struct CheckpointState {
+    iteration: u32,
+    samples: u64,
+    wall_s: f64,
+    learning_rate: f64,
+    config_hash: String,
+    noise_rng: String,
+    shuffle_rng: String,
+}
+
+/// The files of a run's output directory.
+pub(crate) struct RunDir {
+    /// The directory.
+    pub out: PathBuf,
+    checkpoints: PathBuf,
+    latest: PathBuf,
+    metrics: PathBuf,
+}
+
+/// The network files of a checkpoint.
+const CHECKPOINT_FILES: [&str; 4] = [
+    "actor.bpk",
+    "critic.bpk",
+    "actor_optim.bpk",
+    "critic_optim.bpk",
+];
+
+impl RunDir {
+    /// The run directory `out` (nothing is created).
+    pub fn new(out: &Path) -> Self {
+        Self {
+            out: out.to_path_buf(),
+            checkpoints: out.join("checkpoints"),
+            latest: out.join("checkpoints").join("latest"),
+            metrics: out.join("metrics.jsonl"),
+        }
+    }
+
+    /// Whether a run has written a checkpoint here.
+    pub fn holds_run(&self) -> bool {
+        self.latest.exists()
+    }
+
+    /// Creates `checkpoints/` (and the directory).
+    pub fn create(&self) -> Result<(), TrainError> {
+        std::fs::create_dir_all(&self.checkpoints).map_err(io(&self.checkpoints))
+    }
+
+    /// A file directly in the directory.
+    pub fn file(&self, name: &str) -> PathBuf {
+        self.out.join(name)
+    }
+
+    /// Where `run.keep_best` keeps the actor of evaluated iteration `iteration`.
+    pub fn best_candidate(&self, iteration: u32, ext: &str) -> PathBuf {
+        self.checkpoints
+            .join(format!("best_iter_{iteration:06}.{ext}"))
+    }
+
+    /// Where `warm_start.keep_best_round` keeps round `round`'s student.
+    pub fn warm_start_round_blob(&self, round: u32) -> PathBuf {
+        self.checkpoints
+            .join(format!("warm_start_round_{round:03}.blob"))
+    }
+
+    /// `config.toml`: the configuration the run uses.
+    pub fn write_config(&self, config: &TrainConfig) -> Result<(), TrainError> {
+        let text =
+            toml::to_string(config).map_err(|e| TrainError::Export(format!("config.toml: {e}")))?;
+        let p = self.file("config.toml");
+        write_atomically(&p, text.as_bytes()).map_err(io(&p))
+    }
+
+    /// `metrics.jsonl` holding exactly `history`.
+    pub fn write_metrics(&self, history: &[IterationMetrics]) -> Result<(), TrainError> {
+        let mut text = String::new();
+        for m in history {
+            text.push_str(&metrics_line(m)?);
+            text.push('\n');
+        }
+        write_atomically(&self.metrics, text.as_bytes()).map_err(io(&self.metrics))
+    }
+
+    /// One more line of `metrics.jsonl`.
+    pub fn append_metrics(&self, m: &IterationMetrics) -> Result<(), TrainError> {
+        use std::io::Write;
+        let mut f = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&self.metrics)
+            .map_err(io(&self.metrics))?;
+        writeln!(f, "{}", metrics_line(m)?).map_err(io(&self.metrics))
+    }
+
+    /// `learning_curves.svg` of `history`.
+    pub fn write_curves(&self, name: &str, history: &[IterationMetrics]) -> Result<(), TrainError> {
+        let p = self.file("learning_curves.svg");
+        write_atomically(&p, learning_curves(name, history).as_bytes()).map_err(io(&p))
+    }
+
+    /// The metrics of the run up to iteration `last` (a resume: later lines belong to the
+    /// interval the checkpoint lost). A missing file is an empty history; a line that does
+    /// not parse is an error unless it is the last one (a write cut short by a kill).
+    fn read_metrics(&self, last: u32) -> Result<Vec<IterationMetrics>, TrainError> {
+        let text = match std::fs::read_to_string(&self.metrics) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
+            Err(e) => return Err(TrainError::Io(self.metrics.clone(), e)),
+        };
+        let lines: Vec<&str> = text.lines().collect();
+        let mut history = Vec::new();
+        for (i, line) in lines.iter().enumerate() {
+            match serde_json::from_str::<IterationMetrics>(line) {
+                Ok(m) if m.iteration <= last => history.push(m),
+                Ok(_) => {}
+                Err(_) if i + 1 == lines.len() => {}
+                Err(e) => {
+                    return Err(TrainError::Checkpoint(format!(
+                        "{} line {}: {e}",
+                        self.metrics.display(),
+                        i + 1
+                    )));
+                }
+            }
+        }
+        Ok(history)
+    }
+
+    /// Writes `checkpoints/iter_N/` for `s` and then points `checkpoints/latest` at it;
+    /// keeps the newest two checkpoints.
+    pub fn save_checkpoint<A: PolicyNet, C: ValueNet>(
+        &self,
+        s: &RunState<A, C>,
+        config: &TrainConfig,
+    ) -> Result<(), TrainError> {
+        let name = format!("iter_{:06}", s.iteration);
+        let dir = self.checkpoints.join(&name);
+        if dir.exists() {
+            std::fs::remove_dir_all(&dir).map_err(io(&dir))?;
+        }
+        std::fs::create_dir_all(&dir).map_err(io(&dir))?;
+        let ck = |e: burn::store::RecordError| TrainError::Checkpoint(format!("{name}: {e:?}"));
+        s.learner
+            .actor
+            .clone()
+            .save_file(dir.join(CHECKPOINT_FILES[0]))
+            .map_err(ck)?;
+        s.learner
+            .critic
+            .clone()
+            .save_file(dir.join(CHECKPOINT_FILES[1]))
+            .map_err(ck)?;
+        s.learner
+            .actor_optim
+            .save(dir.join(CHECKPOINT_FILES[2]))
+            .map_err(ck)?;
+        s.learner
+            .critic_optim
+            .save(dir.join(CHECKPOINT_FILES[3]))
+            .map_err(ck)?;
+        let state = CheckpointState {
+            iteration: s.iteration,
+            samples: s.samples,
+            wall_s: s.wall_s,
+            learning_rate: s.learner.learning_rate,
+            config_hash: format!("{:016x}", config.hash()),
+            noise_rng: rng_state(&s.noise_rng),
+            shuffle_rng: rng_state(&s.shuffle_rng),
+        };
+        let json = serde_json::to_string_pretty(&state)
+            .map_err(|e| TrainError::Checkpoint(format!("{name}/state.json: {e}")))?;
+        write_atomically(&dir.join("state.json"), json.as_bytes()).map_err(io(&dir))?;
+        // The burnpack files are written by burn without fsync: sync the directory's files
+        // before the pointer names it.
+        for f in CHECKPOINT_FILES {
+            let p = dir.join(f);
+            std::fs::File::open(&p)
+                .and_then(|h| h.sync_all())
+                .map_err(io(&p))?;
+        }
+        write_atomically(&self.latest, name.as_bytes()).map_err(io(&self.latest))?;
+        // Keep the newest two checkpoints.
+        let entries = std::fs::read_dir(&self.checkpoints).map_err(io(&self.checkpoints))?;
+        let mut dirs: Vec<String> = entries
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("iter_") && !n.ends_with(".tmp"))
+            .collect();
+        dirs.sort();
+        let keep = dirs.len().saturating_sub(2);
+        for old in &dirs[..keep] {
+            let p = self.checkpoints.join(old);
+            std::fs::remove_dir_all(&p).map_err(io(&p))?;
+        }
+        Ok(())
+    }
+
+    /// The run state of the checkpoint `checkpoints/latest` names, refused when it was
+    /// written under another config.
+    pub fn load_checkpoint<A: PolicyNet, C: ValueNet>(
+        &self,
+        config: &TrainConfig,
+        arch: &Architecture,
+        device: &Device,
+    ) -> Result<RunState<A, C>, TrainError> {
+        let name = std::fs::read_to_string(&self.latest).map_err(|_| {
+            TrainError::OutDir(format!(
+                "nothing to resume: {} does not exist",
+                self.latest.display()
+            ))
+        })?;
+        let dir = self.checkpoints.join(name.trim());
+        let bad = |m: String| TrainError::Checkpoint(format!("{}: {m}", dir.display()));
+        let state: CheckpointState = serde_json::from_str(
+            &std::fs::read_to_string(dir.join("state.json")).map_err(io(&dir))?,
+        )
+        .map_err(|e| bad(format!("state.json: {e}")))?;
+        let hash = format!("{:016x}", config.hash());
+        if state.config_hash != hash {
+            return Err(bad(format!(
+                "written by a run with config hash {}, this config hashes to {hash}; resume with the run's own config.toml",
+                state.config_hash
+            )));
+        }
+        let seed = config.run.seed;
+        let mut rng = init_rng(seed);
+        let actor = A::fresh(arch, config.ppo.init_std, &mut rng, device)
+            .try_load_file(dir.join(CHECKPOINT_FILES[0]))
+            .map_err(|e| bad(format!("actor.bpk: {e:?}")))?;
+        let critic = C::fresh(arch, &mut rng, device)
+            .try_load_file(dir.join(CHECKPOINT_FILES[1]))
+            .map_err(|e| bad(format!("critic.bpk: {e:?}")))?;
+        let actor_optim = adam()
+            .load(dir.join(CHECKPOINT_FILES[2]))
+            .map_err(|e| bad(format!("actor_optim.bpk: {e:?}")))?;
+        let critic_optim = adam()
+            .load(dir.join(CHECKPOINT_FILES[3]))
+            .map_err(|e| bad(format!("critic_optim.bpk: {e:?}")))?;
+        let mut learner = Learner::new(actor, critic, state.learning_rate, device.clone());
+        learner.actor_optim = actor_optim;
+        learner.critic_optim = critic_optim;
+        let noise_rng =
+            restore_rng(seed, &state.noise_rng).ok_or_else(|| bad("noise_rng".into()))?;
+        let shuffle_rng =
+            restore_rng(seed, &state.shuffle_rng).ok_or_else(|| bad("shuffle_rng".into()))?;
+        Ok(RunState {
+            learner,
+            iteration: state.iteration,
+            samples: state.samples,
+            wall_s: state.wall_s,
+            noise_rng,
+            shuffle_rng,
+            history: self.read_metrics(state.iteration)?,
+        })
+    }
+}
+
+/// One line of `metrics.jsonl`.
+fn metrics_line(m: &IterationMetrics) -> Result<String, TrainError> {
+    serde_json::to_string(m).map_err(|e| TrainError::Export(format!("metrics.jsonl: {e}")))
+}
+
+/// The learner (actor, critic, Adam states, learning rate) of the latest checkpoint in `out`
+/// and its iteration (for diagnostics on a run's networks).
+pub fn checkpoint_learner(
+    config: &TrainConfig,
+    out: &Path,
+    device: &Device,
+) -> Result<(u32, Learner), TrainError> {
+    let arch = config.architecture()?;
+    let state = RunDir::new(out).load_checkpoint::<Actor, Critic>(config, &arch, device)?;
+    Ok((state.iteration, state.learner))
+}
+
+/// The actor of the latest checkpoint in `out` as a blob with the run's provenance (for
+/// exporting a run that has not finished), feed-forward or recurrent, and its iteration.
+pub fn checkpoint_blob(
+    config: &TrainConfig,
+    out: &Path,
+    device: &Device,
+) -> Result<(u32, Vec<u8>), TrainError> {
+    fn latest<A: PolicyNet, C: ValueNet>(
+        dir: &RunDir,
+        config: &TrainConfig,
+        arch: &Architecture,
+        device: &Device,
+    ) -> Result<(u32, Vec<u8>), TrainError> {
+        let s = dir.load_checkpoint::<A, C>(config, arch, device)?;
+        Ok((
+            s.iteration,
+            actor_blob(&s.learner.actor, config, s.iteration)?,
+        ))
+    }
+    let arch = config.architecture()?;
+    let dir = RunDir::new(out);
+    if arch.is_recurrent() {
+        latest::<RecurrentActor, RecurrentCritic>(&dir, config, &arch, device)
+    } else {
+        latest::<Actor, Critic>(&dir, config, &arch, device)
+    }
+}
+
+/// The feed-forward actor of the latest checkpoint in `out` (for checking a resume).
+pub fn checkpoint_actor(
+    config: &TrainConfig,
+    out: &Path,
+    device: &Device,
+) -> Result<(u32, Actor), TrainError> {
+    let arch = config.architecture()?;
+    let state = RunDir::new(out).load_checkpoint::<Actor, Critic>(config, &arch, device)?;
+    Ok((state.iteration, state.learner.actor))
+}

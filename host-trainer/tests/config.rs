@@ -1,0 +1,138 @@
+//! The run configuration: every shipped TOML parses, the presets in code equal their TOML
+//! files, schedules and refine stages, and bad values are refused with the field's name.
+
+use host_trainer::config::{ConfigError, TrainConfig};
+use sitl::env::RewardWeights;
+
+const STAGE1: &str = include_str!("../configs/stage1.toml");
+const PAPER: &str = include_str!("../configs/stage1_paper.toml");
+
+#[test]
+fn every_config_in_configs_parses() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let mut n = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "toml") {
+            TrainConfig::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            n += 1;
+        }
+    }
+    assert!(n >= 6, "{n} configs");
+}
+
+#[test]
+fn shipped_configs_parse() {
+    let ours = TrainConfig::parse(STAGE1).unwrap();
+    let paper = TrainConfig::parse(PAPER).unwrap();
+    // The paper's settings stay reachable.
+    assert_eq!(paper.env.num_envs, 8192);
+    assert_eq!(paper.env.spawn, "stage1");
+    assert_eq!(paper.ppo.steps_per_env, 100);
+    assert_eq!((paper.ppo.epochs, paper.ppo.minibatches), (5, 4));
+    assert_eq!(paper.ppo.learning_rate, 1e-4);
+    assert_eq!(paper.ppo.entropy_coef, 0.01);
+    assert_eq!(paper.reward, RewardWeights::default());
+    assert_ne!(ours.hash(), paper.hash());
+    assert_eq!(ours.hash(), TrainConfig::parse(STAGE1).unwrap().hash());
+}
+
+#[test]
+fn warm_start_schedules() {
+    let text = include_str!("../configs/stage2_G.toml");
+    let mut warm = TrainConfig::parse(text).unwrap().warm_start.unwrap();
+    warm.rounds = 11;
+    warm.learning_rate = 1e-3;
+    warm.learning_rate_final = None;
+    warm.teacher_share_start = 1.0;
+    // The default: the teacher's share falls 1 -> 0 over the first half, the rate is flat.
+    let shares: Vec<f64> = (0..11).map(|r| warm.teacher_share(r)).collect();
+    assert_eq!(&shares[..3], &[1.0, 0.8, 0.6]);
+    assert!(shares[5..].iter().all(|s| *s == 0.0), "{shares:?}");
+    assert!((0..11).all(|r| warm.round_learning_rate(r) == 1e-3));
+    // A refinement: no teacher, the rate geometric from 1e-3 to 1e-5 (1e-4 half-way).
+    warm.teacher_share_start = 0.0;
+    warm.learning_rate_final = Some(1e-5);
+    assert!((0..11).all(|r| warm.teacher_share(r) == 0.0));
+    let rate = |r| warm.round_learning_rate(r);
+    assert!((rate(0) - 1e-3).abs() < 1e-12);
+    assert!((rate(5) - 1e-4).abs() < 1e-12);
+    assert!((rate(10) - 1e-5).abs() < 1e-12);
+    assert!(
+        (rate(99) - 1e-5).abs() < 1e-12,
+        "past the last round it stays at the final rate"
+    );
+}
+
+#[test]
+fn refine_stages_inherit_the_teacher_and_start_with_the_student_flying() {
+    let c = TrainConfig::parse(include_str!("../configs/stage2_B.toml")).unwrap();
+    let warm = c.warm_start.unwrap();
+    let stages = warm.stages();
+    assert_eq!(stages.len(), 3);
+    assert_eq!(
+        stages.iter().map(|s| s.rounds).collect::<Vec<_>>(),
+        [30, 12, 8]
+    );
+    assert_eq!(stages[0].teacher_share(0), 1.0);
+    for s in &stages[1..] {
+        assert_eq!(s.teacher_share(0), 0.0);
+        assert_eq!(s.teacher_blob, warm.teacher_blob);
+        assert_eq!(s.minibatch, warm.minibatch);
+        assert_eq!(s.student_noise_std, warm.student_noise_std);
+        assert!(s.refine.is_empty() && s.student.is_none());
+    }
+    assert_eq!(stages[2].steps_per_env, 750);
+    assert!((stages[2].round_learning_rate(7) - 3e-5).abs() < 1e-12);
+    // A bad refine stage is refused like a bad warm start.
+    let text = include_str!("../configs/stage2_B.toml").replacen(
+        "rounds = 8\nsteps_per_env = 750",
+        "rounds = 8\nsteps_per_env = 0",
+        1,
+    );
+    assert!(matches!(
+        TrainConfig::parse(&text),
+        Err(ConfigError::Invalid(_))
+    ));
+}
+
+#[test]
+fn typos_and_bad_values_are_errors() {
+    let typo = STAGE1.replace("entropy_coef", "entropy_cof");
+    assert!(matches!(
+        TrainConfig::parse(&typo),
+        Err(ConfigError::Parse(_))
+    ));
+    let bad = STAGE1.replace("preset = \"paper\"", "preset = \"moon\"");
+    let e = TrainConfig::parse(&bad).unwrap_err().to_string();
+    assert!(e.contains("moon"), "{e}");
+    let stage2 = include_str!("../configs/stage2_B.toml");
+    for bad in [
+        "learning_rate = 1e-3\nlearning_rate_final = -1.0",
+        "learning_rate = 1e-3\nteacher_share_start = 1.5",
+    ] {
+        let t = stage2.replacen("learning_rate = 1e-3", bad, 1);
+        assert!(
+            matches!(TrainConfig::parse(&t), Err(ConfigError::Invalid(_))),
+            "{bad}"
+        );
+    }
+    let bad = STAGE1.replace("gamma = 0.99", "gamma = 1.5");
+    assert!(matches!(
+        TrainConfig::parse(&bad),
+        Err(ConfigError::Invalid(_))
+    ));
+}
+
+#[test]
+fn the_presets_in_code_are_the_toml_presets() {
+    assert_eq!(TrainConfig::parse(PAPER).unwrap(), TrainConfig::paper());
+    assert_eq!(TrainConfig::parse(STAGE1).unwrap(), TrainConfig::ours());
+    assert_eq!(TrainConfig::default(), TrainConfig::paper());
+    // The presets are valid configs and hash as their files do (a blob's provenance).
+    for (text, preset) in [(PAPER, TrainConfig::paper()), (STAGE1, TrainConfig::ours())] {
+        let round_trip = TrainConfig::parse(&toml::to_string(&preset).unwrap()).unwrap();
+        assert_eq!(round_trip, preset);
+        assert_eq!(preset.hash(), TrainConfig::parse(text).unwrap().hash());
+    }
+}
