@@ -254,27 +254,27 @@ struct Round {
     keep: Vec<f32>,
 }
 
-/// The round collector both students share: `steps` steps of every env of `env`, each
-/// executed action the teacher's with probability `beta` and otherwise the student's mean
-/// (`policy`, through firmware-core, its recurrent state following the flight and zeroed at
-/// episode ends) plus `noise_std` Gaussian noise, all drawn from `rng`. Returns the round and
-/// the share of teacher actions.
-#[allow(clippy::too_many_arguments)]
+/// The round collector both students share: round `round` of `warm`, `warm.steps_per_env`
+/// steps of every env of `env`, each executed action the teacher's with the round's
+/// probability ([`WarmStart::teacher_share`]) and otherwise the student's mean (`policy`,
+/// through firmware-core, its recurrent state following the flight and zeroed at episode
+/// ends) plus `warm.student_noise_std` Gaussian noise, all drawn from `rng`. Returns the
+/// round and the share of teacher actions.
 fn collect_round(
     env: &mut VecEnv,
     teacher: &Teacher,
     policy: &Policy<'_>,
-    beta: f64,
-    steps: usize,
-    noise_std: f32,
+    warm: &WarmStart,
+    round: u32,
     rng: &mut ChaCha8Rng,
 ) -> Result<(Round, f64), TrainError> {
+    let (beta, steps) = (warm.teacher_share(round), warm.steps_per_env);
     let (n, obs_dim) = (env.num_envs(), env.obs_dim());
     let mut memory = vec![policy.initial_state(); n];
     let mut labels = vec![0.0f32; n * ACTION_DIM];
     let mut executed = vec![0.0f32; n * ACTION_DIM];
     let mut previous_done = vec![false; n];
-    let mut round = Round {
+    let mut flown = Round {
         obs: Vec::with_capacity(steps * n * obs_dim),
         labels: Vec::with_capacity(steps * n * ACTION_DIM),
         keep: Vec::with_capacity(steps * n),
@@ -298,13 +298,13 @@ fn collect_round(
                 from_teacher += 1;
             } else {
                 for k in 0..ACTION_DIM {
-                    out[k] = mean[k] + noise_std * normal(rng);
+                    out[k] = mean[k] + warm.student_noise_std * normal(rng);
                 }
             }
         }
-        round.obs.extend_from_slice(obs);
-        round.labels.extend_from_slice(&labels);
-        round
+        flown.obs.extend_from_slice(obs);
+        flown.labels.extend_from_slice(&labels);
+        flown
             .keep
             .extend(previous_done.iter().map(|d| if *d { 0.0 } else { 1.0 }));
         env.step(&executed)
@@ -314,7 +314,7 @@ fn collect_round(
             m.clear();
         }
     }
-    Ok((round, from_teacher as f64 / (n * steps).max(1) as f64))
+    Ok((flown, from_teacher as f64 / (n * steps).max(1) as f64))
 }
 
 /// The log line of round `round` (0-based): its teacher share, data, fit and what the
@@ -367,15 +367,8 @@ pub fn imitate(
     for round in 0..warm.rounds {
         let payload = forward_payload(actor.payload(), arch, warm)?;
         let policy = flying_policy(&payload, arch)?;
-        let (flown, teacher_share) = collect_round(
-            &mut env,
-            &teacher,
-            &policy,
-            warm.teacher_share(round),
-            warm.steps_per_env,
-            warm.student_noise_std,
-            &mut rng,
-        )?;
+        let (flown, teacher_share) =
+            collect_round(&mut env, &teacher, &policy, warm, round, &mut rng)?;
         let stats = env.take_stats();
         data_obs.extend_from_slice(&flown.obs);
         data_act.extend_from_slice(&flown.labels);
@@ -449,15 +442,8 @@ pub fn imitate_recurrent(
         let payload = forward_payload(actor.net.payload(), arch, warm)?;
         let policy = flying_policy(&payload, arch)?;
         env.respawn_all();
-        let (flown, teacher_share) = collect_round(
-            &mut env,
-            &teacher,
-            &policy,
-            warm.teacher_share(round),
-            warm.steps_per_env,
-            warm.student_noise_std,
-            &mut rng,
-        )?;
+        let (flown, teacher_share) =
+            collect_round(&mut env, &teacher, &policy, warm, round, &mut rng)?;
         let stats = env.take_stats();
         data.push(flown);
         let per_round = n * warm.steps_per_env;

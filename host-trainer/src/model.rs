@@ -143,6 +143,27 @@ impl Actor {
     }
 }
 
+/// [`PpoNet`] for a feed-forward network with its MLP in field `mlp`: no state, so
+/// minibatches are samples.
+macro_rules! mlp_ppo_net {
+    ($net:ty) => {
+        impl PpoNet for $net {
+            const RECURRENT: bool = false;
+            fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+                mlp_outputs(&self.mlp, b, mb, device)
+            }
+            fn rollout_outputs(
+                &self,
+                b: &Batch,
+                last: Option<&[f32]>,
+                device: &Device,
+            ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+                mlp_rollout_outputs(&self.mlp, b, last, device)
+            }
+        }
+    };
+}
+
 /// `mlp`'s outputs for `mb`'s samples of `b`.
 fn mlp_outputs(mlp: &Mlp, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
     mlp.forward(tensor2(
@@ -167,20 +188,7 @@ fn mlp_rollout_outputs(
     (all, last, Vec::new())
 }
 
-impl PpoNet for Actor {
-    const RECURRENT: bool = false;
-    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
-        mlp_outputs(&self.mlp, b, mb, device)
-    }
-    fn rollout_outputs(
-        &self,
-        b: &Batch,
-        last: Option<&[f32]>,
-        device: &Device,
-    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-        mlp_rollout_outputs(&self.mlp, b, last, device)
-    }
-}
+mlp_ppo_net!(Actor);
 
 impl PolicyNet for Actor {
     /// Feed-forward `arch` only.
@@ -276,17 +284,4 @@ impl ValueNet for Critic {
     }
 }
 
-impl PpoNet for Critic {
-    const RECURRENT: bool = false;
-    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
-        mlp_outputs(&self.mlp, b, mb, device)
-    }
-    fn rollout_outputs(
-        &self,
-        b: &Batch,
-        last: Option<&[f32]>,
-        device: &Device,
-    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-        mlp_rollout_outputs(&self.mlp, b, last, device)
-    }
-}
+mlp_ppo_net!(Critic);

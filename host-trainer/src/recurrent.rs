@@ -320,6 +320,29 @@ pub struct RecurrentCritic {
     pub net: LstmNet,
 }
 
+/// [`PpoNet`] for an LSTM network in field `net` whose window states are the batch's
+/// `Sequences::$h0`: minibatches are whole env windows.
+macro_rules! lstm_ppo_net {
+    ($net:ty, $h0:ident) => {
+        impl PpoNet for $net {
+            const RECURRENT: bool = true;
+            fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+                let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.$h0);
+                window_outputs(&self.net, b, mb, h0, device)
+            }
+            fn rollout_outputs(
+                &self,
+                b: &Batch,
+                last: Option<&[f32]>,
+                device: &Device,
+            ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+                let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.$h0);
+                window_rollout_outputs(&self.net, b, last, h0, device)
+            }
+        }
+    };
+}
+
 /// The windows of `mb.envs` through `net` from the states `h0` (`envs × width` rows of
 /// the whole batch).
 fn window_outputs(
@@ -388,22 +411,7 @@ fn window_rollout_outputs(
     (values(all), values(last_out), kept.to_flat())
 }
 
-impl PpoNet for RecurrentActor {
-    const RECURRENT: bool = true;
-    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
-        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.actor_h0);
-        window_outputs(&self.net, b, mb, h0, device)
-    }
-    fn rollout_outputs(
-        &self,
-        b: &Batch,
-        last: Option<&[f32]>,
-        device: &Device,
-    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.actor_h0);
-        window_rollout_outputs(&self.net, b, last, h0, device)
-    }
-}
+lstm_ppo_net!(RecurrentActor, actor_h0);
 
 impl PolicyNet for RecurrentActor {
     /// Recurrent `arch` only.
@@ -464,19 +472,4 @@ impl ValueNet for RecurrentCritic {
     }
 }
 
-impl PpoNet for RecurrentCritic {
-    const RECURRENT: bool = true;
-    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
-        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.critic_h0);
-        window_outputs(&self.net, b, mb, h0, device)
-    }
-    fn rollout_outputs(
-        &self,
-        b: &Batch,
-        last: Option<&[f32]>,
-        device: &Device,
-    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-        let h0 = b.sequence.as_ref().map_or(&[][..], |s| &s.critic_h0);
-        window_rollout_outputs(&self.net, b, last, h0, device)
-    }
-}
+lstm_ppo_net!(RecurrentCritic, critic_h0);
