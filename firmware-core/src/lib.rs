@@ -27,6 +27,7 @@ pub mod baseline;
 pub mod blob;
 pub mod controller;
 pub mod crc32;
+mod format;
 pub mod math;
 pub mod nn;
 pub mod observation;
