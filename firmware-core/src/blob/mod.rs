@@ -46,7 +46,7 @@
 //! * `q [rows][stride]` i8 (two's complement), `stride = cols` rounded up to a multiple
 //!   of 4; the padding bytes at the end of each row are zero.
 //!
-//! Every tensor so starts on a 4-byte boundary. The quantiser ([`encode_i8`]) sets
+//! Every tensor so starts on a 4-byte boundary. The quantiser (`encode_i8`, feature `std`) sets
 //! `scale[r] = max_c |w[r][c]| / 127` and `q = round(w / scale)` in -127..=127. Row G is
 //! 320,288 payload bytes in int8 against 1,215,760 in f32 (3.8× smaller).
 //!
@@ -319,8 +319,8 @@ impl<'w> Blob<'w> {
         &self.header
     }
 
-    /// The f32 weights in payload order; `None` for an int8 blob (see
-    /// [`Blob::dequantized`] on the host).
+    /// The f32 weights in payload order; `None` for an int8 blob (see `Blob::dequantized`,
+    /// feature `std`, on the host).
     pub fn weights(&self) -> Option<&'w [f32]> {
         match self.header.dtype {
             WeightDtype::F32 => Some(crate::nn::words_f32(self.payload)),
