@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Reads an Overtake weight blob using only its documentation (firmware-core/src/blob.rs).
+"""Reads an Overtake weight blob using only its documentation (firmware-core/src/blob/mod.rs).
 
 Prints the header and a summary of the weights as JSON. No dependencies beyond the Python
 standard library: a check that the format doc is enough to write a reader in another language.

@@ -14,7 +14,8 @@
 //! Frames: world z up; body x forward, y left, z up; quaternions (w, x, y, z) map body to
 //! world. Units are SI (m, s, rad) unless a name says otherwise (`rpm`, `_ns`).
 //!
-//! Feature `std` adds the blob encoder and [`blob::AlignedBytes`] for host tools.
+//! Feature `std` adds the blob encoder (`blob::encode`, `encode_i8`, `convert`, ...) and
+//! `blob::AlignedBytes` for host tools.
 #![cfg_attr(not(test), no_std)]
 #![deny(missing_docs)]
 #![cfg_attr(
@@ -27,6 +28,7 @@ pub mod baseline;
 pub mod blob;
 pub mod controller;
 pub mod crc32;
+mod format;
 pub mod math;
 pub mod nn;
 pub mod observation;

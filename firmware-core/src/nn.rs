@@ -16,7 +16,7 @@
 //! * An MLP head ([`Mlp2`], [`Mlp3`], [`Mlp4`]): its hidden [`Linear`] layers each followed
 //!   by tanh, then a linear output layer (no activation): the Gaussian mean of the policy.
 
-use crate::blob::{BlobError, WeightDtype};
+use crate::format::{BlobError, WeightDtype};
 
 /// Actions of a quadrotor policy: one per motor.
 pub const ACTION_DIM: usize = 4;

@@ -12,7 +12,7 @@
 //! (Counts with the LSTM's two PyTorch biases stored as one; PyTorch counts 1,024 more for
 //! F and G, 512 for E.) D differs from C only in its training reward.
 
-use crate::blob::BlobError;
+use crate::format::{BlobError, WeightDtype};
 use crate::nn::{
     ACTION_DIM, LstmPolicy, LstmStackState, Mlp2, Mlp3, Mlp4, MlpPolicy, WeightReader,
 };
@@ -159,10 +159,10 @@ impl Architecture {
     }
 
     /// Payload bytes of these weights stored as `dtype` (see [`crate::blob`]).
-    pub fn payload_bytes(&self, dtype: crate::blob::WeightDtype) -> usize {
+    pub fn payload_bytes(&self, dtype: WeightDtype) -> usize {
         match dtype {
-            crate::blob::WeightDtype::F32 => 4 * self.param_count(),
-            crate::blob::WeightDtype::I8 => self
+            WeightDtype::F32 => 4 * self.param_count(),
+            WeightDtype::I8 => self
                 .tensors()
                 .iter()
                 .map(|t| {
