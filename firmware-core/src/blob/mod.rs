@@ -108,15 +108,9 @@ impl BlobHeader {
     /// size implies), action map (eq. 3) and 50 Hz control period; `payload_len` is set by the
     /// encoder.
     pub fn paper(row: crate::policy::TableRow, provenance: Provenance) -> Self {
-        let architecture = Architecture::table1(row);
-        let layout = match architecture.obs_dim {
-            17 => crate::observation::ObservationLayout::TimeTrial17,
-            20 => crate::observation::ObservationLayout::OpponentPosition20,
-            _ => crate::observation::ObservationLayout::FullOpponent30,
-        };
         Self {
-            architecture,
-            observation: ObservationSpec::paper(layout),
+            architecture: Architecture::table1(row),
+            observation: ObservationSpec::paper(row.observation_layout()),
             action_map: ActionMap::PAPER,
             control_period_ns: crate::PAPER_CONTROL_PERIOD_NS,
             dtype: WeightDtype::F32,
