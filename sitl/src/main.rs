@@ -634,7 +634,7 @@ fn fc(args: FcArgs) -> Result<(), String> {
         summary.steps,
         summary.flights,
         l.frames_received,
-        l.rejected() + l.stale
+        l.dropped()
     );
     Ok(())
 }

@@ -1,7 +1,8 @@
 //! The MAVLink bridge end to end: lockstep races over UDP give `sitl eval`'s trajectories,
 //! and faults (a killed controller, malformed frames, duplicated and reordered datagrams,
-//! a wrong system id, bad signatures) neither hang nor crash the simulator and are
-//! reported.
+//! a wrong system id, bad signatures, a state stamped far in the future) neither hang nor
+//! crash the simulator nor wedge a controller, and are reported. `link_fuzz.rs` fuzzes the
+//! same datagram handling without sockets.
 
 use sitl::bridge::fc::{FcConfig, serve};
 use sitl::bridge::race::{Entrant, RaceConfig, RaceOutcome, Transport, race};
@@ -302,6 +303,97 @@ fn malformed_duplicated_reordered_and_impostor_frames_change_nothing() {
         assert!(l.wrong_system > 0, "impostor counted: {l:?}");
     }
     println!("{}", outcome.summary());
+}
+
+/// A UDP proxy between the simulator and one controller that passes everything through and,
+/// right after the `at`-th datagram towards the controller, injects `extra` once.
+struct Injector {
+    addr: SocketAddr,
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Injector {
+    fn new(controller: SocketAddr, at: u64, extra: Vec<u8>) -> Self {
+        let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+        socket
+            .set_read_timeout(Some(Duration::from_millis(20)))
+            .unwrap();
+        let addr = socket.local_addr().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let flag = stop.clone();
+        let thread = std::thread::spawn(move || {
+            let mut sim: Option<SocketAddr> = None;
+            let mut buf = vec![0u8; 65_536];
+            let mut towards_controller = 0u64;
+            while !flag.load(Ordering::Relaxed) {
+                let Ok((n, from)) = socket.recv_from(&mut buf) else {
+                    continue;
+                };
+                if from == controller {
+                    if let Some(sim) = sim {
+                        let _ = socket.send_to(&buf[..n], sim);
+                    }
+                    continue;
+                }
+                sim = Some(from);
+                let _ = socket.send_to(&buf[..n], controller);
+                towards_controller += 1;
+                if towards_controller == at {
+                    let _ = socket.send_to(&extra, controller);
+                }
+            }
+        });
+        Self {
+            addr,
+            stop,
+            thread: Some(thread),
+        }
+    }
+}
+
+impl Drop for Injector {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// Issue 17: one CRC-valid state stamped far in the future (a replayed or corrupted frame,
+/// which an unsigned link takes from anyone on the host) moved the controller's step clock:
+/// the controller answered that state, took every later step for stale, and even a new
+/// flight did not reset its clock, so the simulator declared it failed after the step
+/// timeout. Now the controller takes only the step it expects and counts the frame as
+/// `future`; the race flies `sitl eval`'s trajectories as if the frame had not come.
+#[test]
+fn future_stamped_state_does_not_wedge_the_controller() {
+    let state = sitl::frames::NedState {
+        position_m: firmware_core::math::Vec3::new(0.0, 0.0, -1.0),
+        velocity_mps: Default::default(),
+        attitude: firmware_core::math::Quat::IDENTITY,
+        body_rates_radps: Default::default(),
+    };
+    let mut forged = Vec::new();
+    let mut forger = Codec::new(sitl::bridge::SIM_COMPONENT_ID, None, 0);
+    for m in sitl::bridge::state_messages(u32::MAX - 1, &state) {
+        forger.encode(1, &m, &mut forged);
+    }
+    let ego = fc_thread(&student(), 1, None);
+    // Datagram 1 starts the first flight, 101 is the step at t = 2 s.
+    let injector = Injector::new(ego, 101, forged);
+    let entrants = [entrant("ego", &student(), 1)];
+    let mut c = config(2, 20.0);
+    c.step_timeout = Duration::from_millis(300);
+    let outcome = race(&entrants, &Transport::Attach(vec![injector.addr]), &c).expect("race runs");
+    assert!(
+        outcome.controllers[0].failure.is_none(),
+        "{}",
+        outcome.summary()
+    );
+    let reference = evaluate(&entrants[0].pilot, None, &c.eval, true);
+    assert_eq!(max_deviation(&outcome.episodes, &reference), 0.0);
 }
 
 #[test]

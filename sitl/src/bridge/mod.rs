@@ -10,10 +10,17 @@
 //!
 //! 1. **New flight** (an episode's start, a respawn after a crash): the simulator sends each
 //!    controller `COMMAND_LONG` `MAV_CMD_DO_SET_MISSION_CURRENT` with `param1` = the gate to
-//!    fly to (gates are the mission items), `param2` = 1 (reset) and `param3` = the flight
-//!    number (increasing; a repeated one is acknowledged and ignored). The controller zeroes
-//!    its recurrent state and answers `COMMAND_ACK` with `result_param2` = the flight number;
-//!    the simulator waits for every acknowledgement before the flight's first step.
+//!    fly to (gates are the mission items), `param2` = 1 (reset), `param3` = the flight
+//!    number (1, 2, …), `param4` = the step period (ms), `param5` and `param6` = the
+//!    simulated time of the flight's first step (ms) as its high and low 16 bits (an f32
+//!    holds integers exactly only up to 2^24), and `param7` = the opponent's system id (0 in
+//!    a time trial); [`NewFlight`] reads and writes it. The controller zeroes its recurrent
+//!    state, restarts its lockstep clock at the first step, and answers `COMMAND_ACK` with
+//!    `result_param2` = the flight number; the simulator waits for every acknowledgement
+//!    before the flight's first step. A reset equal in every field to the current flight's
+//!    or to one of the [`fc::RECENT_FLIGHTS`] before it (a duplicate, reordered or replayed
+//!    one) is acknowledged again and changes nothing; one with a field out of range is
+//!    refused (`MAV_RESULT_DENIED`).
 //! 2. **Each step**, one datagram per controller: the other vehicles' states, then its own,
 //!    each as `ATTITUDE_QUATERNION` (FRD→NED attitude, FRD rates in rad/s) and
 //!    `LOCAL_POSITION_NED` (m, m/s), `time_boot_ms` = `t`, header system id = the vehicle
@@ -29,8 +36,33 @@
 //!    the controller exits.
 //!
 //! With a signing key both ends sign every frame and drop unsigned or wrongly signed ones
-//! ([`wire`]). Frames from the wrong system id, stale steps and duplicates are dropped and
-//! counted per link. A ground station link ([`gcs`]) streams the race as a vehicle would.
+//! ([`wire`]). A ground station link ([`gcs`]) streams the race as a vehicle would.
+//!
+//! # The lockstep clock against stray frames
+//!
+//! Each end takes a frame only when it is the one it waits for; every other frame is
+//! dropped and counted in the link's [`wire::LinkStats`] (each frame in exactly one
+//! counter), and none moves either end's clock:
+//!
+//! - The controller ([`fc::FlightController`]) expects exactly one step at a time: the
+//!   flight's first step, then the step one period after the last it answered (no
+//!   look-ahead: the simulator never skips a step). A state stamped earlier is `stale`,
+//!   later `future`; before the first flight every state is `future`. States from systems
+//!   other than its own and the flight's opponent, and commands from anyone but
+//!   [`SIM_SYSTEM_ID`] or addressed to another system, are `wrong_system`. So a state
+//!   stamped far ahead (replayed, or corrupted with a valid checksum) is one counted drop,
+//!   and a new flight restarts the clock whatever came before: after any datagrams, a new
+//!   flight and its steps are answered as by a fresh controller (`tests/link_fuzz.rs`).
+//! - The simulator ([`race::ControllerLink`]) takes only the acknowledgement of the flight
+//!   it started and the answer for the step it asked; an answer for an earlier step (or an
+//!   earlier flight's acknowledgement) is `stale`, for a later one `future`, anything else
+//!   but heartbeats `ignored`, and frames from another system id `wrong_system`.
+//!
+//! What this does not stop: on an unsigned link anyone on the host can forge the frame an
+//! end waits for. A forged state for the expected step costs one wrong answer; a forged new
+//! flight or shutdown can end that controller's race. Signing stops forgeries, and the
+//! signing timestamps drop replays on the stream they were first sent on (not on a stream
+//! the receiver has not seen yet).
 
 pub mod fc;
 pub mod gcs;
@@ -176,17 +208,118 @@ pub fn command_from_actuators(m: &HIL_ACTUATOR_CONTROLS_DATA) -> MotorCommand {
     }
 }
 
-/// The simulator's "new flight to gate `gate`" command for system `target`.
-pub fn reset_command(target: u8, gate: usize, flight: u32) -> MavMessage {
-    MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-        param1: gate as f32,
-        param2: 1.0,
-        param3: flight as f32,
-        command: MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT,
-        target_system: target,
-        target_component: AUTOPILOT_COMPONENT_ID,
-        ..Default::default()
-    })
+/// Largest flight number a new flight may carry: `param3` is an f32, exact for integers up
+/// to 2^24 (16.7 million flights).
+pub const MAX_FLIGHT_NUMBER: u32 = 1 << 24;
+/// Longest step period a new flight may ask for (ms).
+pub const MAX_STEP_PERIOD_MS: u32 = 1000;
+
+/// A new flight as the simulator starts it: the fields of its reset command (protocol
+/// step 1). Two resets are the same flight when every field is equal.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct NewFlight {
+    /// The flight number (1, 2, … in a race; at most [`MAX_FLIGHT_NUMBER`]).
+    pub number: u32,
+    /// The gate to fly to (an index into the track's gates).
+    pub gate: usize,
+    /// The lockstep step period (ms, 1 to [`MAX_STEP_PERIOD_MS`]).
+    pub step_period_ms: u32,
+    /// The simulated time of the flight's first step (ms).
+    pub first_step_ms: u32,
+    /// The opponent's system id (`None` in a time trial).
+    pub opponent: Option<u8>,
+}
+
+/// Why a controller refuses a reset command (it answers `MAV_RESULT_DENIED`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[non_exhaustive]
+pub enum FlightError {
+    /// `param2` is not 1 (only resets are supported).
+    NotAReset,
+    /// The flight number is not an integer in 1..=[`MAX_FLIGHT_NUMBER`].
+    Number,
+    /// The gate is not an index into the track's gates.
+    Gate,
+    /// The step period is not an integer in 1..=[`MAX_STEP_PERIOD_MS`] ms.
+    StepPeriod,
+    /// The first step's time is not two 16-bit integers.
+    FirstStep,
+    /// The opponent is not a system id, or is the controller itself.
+    Opponent,
+}
+
+impl core::fmt::Display for FlightError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(match self {
+            Self::NotAReset => "not a reset (param2 is not 1)",
+            Self::Number => "flight number out of range",
+            Self::Gate => "no such gate",
+            Self::StepPeriod => "step period out of range",
+            Self::FirstStep => "first step time not two 16-bit integers",
+            Self::Opponent => "opponent is not another system id",
+        })
+    }
+}
+
+impl std::error::Error for FlightError {}
+
+/// `x` when it is an integer in `0..=max` (exactly: NaN, infinities and fractions are not).
+fn whole(x: f32, max: u32) -> Option<u32> {
+    let x = f64::from(x);
+    (x >= 0.0 && x <= f64::from(max) && x.fract() == 0.0).then_some(x as u32)
+}
+
+impl NewFlight {
+    /// The simulator's reset command starting this flight on system `target`.
+    pub fn command(&self, target: u8) -> MavMessage {
+        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            param1: self.gate as f32,
+            param2: 1.0,
+            param3: self.number as f32,
+            param4: self.step_period_ms as f32,
+            param5: (self.first_step_ms >> 16) as f32,
+            param6: (self.first_step_ms & 0xffff) as f32,
+            param7: f32::from(self.opponent.unwrap_or(0)),
+            command: MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT,
+            target_system: target,
+            target_component: AUTOPILOT_COMPONENT_ID,
+            confirmation: 0,
+        })
+    }
+
+    /// The flight a `MAV_CMD_DO_SET_MISSION_CURRENT` command starts on a track of `gates`
+    /// gates, or why it is refused.
+    pub fn from_command(c: &COMMAND_LONG_DATA, gates: usize) -> Result<Self, FlightError> {
+        if c.param2 != 1.0 {
+            return Err(FlightError::NotAReset);
+        }
+        let number = whole(c.param3, MAX_FLIGHT_NUMBER)
+            .filter(|&n| n >= 1)
+            .ok_or(FlightError::Number)?;
+        let gate = whole(c.param1, u32::MAX)
+            .map(|g| g as usize)
+            .filter(|&g| g < gates)
+            .ok_or(FlightError::Gate)?;
+        let step_period_ms = whole(c.param4, MAX_STEP_PERIOD_MS)
+            .filter(|&p| p >= 1)
+            .ok_or(FlightError::StepPeriod)?;
+        let first_step_ms = match (whole(c.param5, 0xffff), whole(c.param6, 0xffff)) {
+            (Some(high), Some(low)) => (high << 16) | low,
+            _ => return Err(FlightError::FirstStep),
+        };
+        let opponent = match whole(c.param7, u32::from(u8::MAX)) {
+            Some(0) => None,
+            Some(id) if id != u32::from(c.target_system) => Some(id as u8),
+            _ => return Err(FlightError::Opponent),
+        };
+        Ok(Self {
+            number,
+            gate,
+            step_period_ms,
+            first_step_ms,
+            opponent,
+        })
+    }
 }
 
 /// The simulator's "shut down" command for system `target`.
@@ -241,6 +374,92 @@ mod tests {
             };
             assert_eq!(command_from_actuators(&m), sent);
             assert_eq!(m.time_usec, 20_000);
+        }
+    }
+
+    fn command_data(m: MavMessage) -> COMMAND_LONG_DATA {
+        match m {
+            MavMessage::COMMAND_LONG(c) => c,
+            other => unreachable!("{other:?}"),
+        }
+    }
+
+    #[test]
+    fn a_new_flight_crosses_the_wire_exactly() {
+        for flight in [
+            NewFlight {
+                number: 1,
+                gate: 0,
+                step_period_ms: 20,
+                first_step_ms: 0,
+                opponent: Some(2),
+            },
+            NewFlight {
+                number: MAX_FLIGHT_NUMBER,
+                gate: 5,
+                step_period_ms: MAX_STEP_PERIOD_MS,
+                // Beyond an f32's exact integers: the two halves keep it exact.
+                first_step_ms: u32::MAX - 1,
+                opponent: None,
+            },
+        ] {
+            let c = command_data(flight.command(1));
+            assert_eq!(NewFlight::from_command(&c, 6), Ok(flight));
+        }
+    }
+
+    #[test]
+    fn a_reset_with_a_field_out_of_range_is_refused() {
+        let valid = command_data(
+            NewFlight {
+                number: 3,
+                gate: 2,
+                step_period_ms: 20,
+                first_step_ms: 40,
+                opponent: Some(2),
+            }
+            .command(1),
+        );
+        assert!(NewFlight::from_command(&valid, 6).is_ok());
+        type Edit = fn(&mut COMMAND_LONG_DATA, f32);
+        let cases: [(Edit, &[f32], FlightError); 6] = [
+            (
+                |c, x| c.param1 = x,
+                &[-1.0, 6.0, 7.0, 1e9, 2.5, f32::NAN],
+                FlightError::Gate,
+            ),
+            (
+                |c, x| c.param2 = x,
+                &[0.0, f32::NAN],
+                FlightError::NotAReset,
+            ),
+            (
+                |c, x| c.param3 = x,
+                &[0.0, -1.0, 1.5, 16_777_218.0, 4.3e9, f32::INFINITY, f32::NAN],
+                FlightError::Number,
+            ),
+            (
+                |c, x| c.param4 = x,
+                &[0.0, 1001.0, 19.5, f32::NAN],
+                FlightError::StepPeriod,
+            ),
+            (
+                |c, x| c.param6 = x,
+                &[65_536.0, -1.0, 0.5, f32::NAN],
+                FlightError::FirstStep,
+            ),
+            (
+                |c, x| c.param7 = x,
+                &[1.0, 256.0, -1.0, f32::NAN],
+                FlightError::Opponent,
+            ),
+        ];
+        for (edit, values, why) in cases {
+            for &x in values {
+                let mut c = valid.clone();
+                edit(&mut c, x);
+                assert_eq!(NewFlight::from_command(&c, 6), Err(why), "{x}");
+            }
         }
     }
 

@@ -4,16 +4,17 @@
 
 use super::fc::{FcConfig, FcSummary, serve};
 use super::gcs::GroundStation;
-use super::wire::{Codec, Frame, LinkStats};
+use super::wire::{Codec, LinkStats};
 use super::{
-    SIM_COMPONENT_ID, command_from_actuators, reset_command, shutdown_command, state_messages,
+    NewFlight, SIM_COMPONENT_ID, SIM_SYSTEM_ID, command_from_actuators, shutdown_command,
+    state_messages,
 };
 use crate::eval::{EvalConfig, Report};
 use crate::frames::NedState;
 use crate::pilot::PilotSpec;
 use crate::referee::{Crew, Episode, EpisodeConfig, run_crew};
 use firmware_core::vehicle::{MotorCommand, VehicleState};
-use mavlink::dialects::common::{MavCmd, MavMessage};
+use mavlink::dialects::common::{MavCmd, MavMessage, MavResult};
 use serde::Serialize;
 use std::io::{self, BufRead, BufReader};
 use std::net::{SocketAddr, UdpSocket};
@@ -209,11 +210,11 @@ impl RaceOutcome {
                 c.endpoint,
                 l.frames_received,
                 l.frames_sent,
-                l.rejected() + l.stale
+                l.dropped()
             ));
-            if l.rejected() + l.stale > 0 {
+            if l.dropped() > 0 {
                 s.push_str(&format!(
-                    " (malformed {}, bad crc {}, bad payload {}, unsigned {}, bad signature {}, replayed {}, wrong system {}, stale {})",
+                    " (malformed {}, bad crc {}, bad payload {}, unsigned {}, bad signature {}, replayed {}, wrong system {}, stale {}, future {}, ignored {})",
                     l.malformed,
                     l.bad_crc,
                     l.bad_payload,
@@ -221,7 +222,9 @@ impl RaceOutcome {
                     l.bad_signature,
                     l.replayed,
                     l.wrong_system,
-                    l.stale
+                    l.stale,
+                    l.future,
+                    l.ignored
                 ));
             }
             match &c.failure {
@@ -339,14 +342,188 @@ fn launch(
     }
 }
 
-/// One controller link as the simulator holds it.
-struct Link {
+/// What the simulator waits for on a link.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Awaited {
+    /// The acknowledgement of the flight started last.
+    Acknowledgement,
+    /// The answer for the step asked last.
+    Answer,
+}
+
+/// What the simulator took from one datagram of a controller.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Received {
+    /// Valid frames taken: the awaited one, heartbeats. Each of the datagram's other frames
+    /// is in one of the link's counters.
+    pub taken: u32,
+    /// The awaited frame, when this datagram brought it.
+    pub answer: Option<Answer>,
+}
+
+/// A frame the simulator waited for.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Answer {
+    /// The controller accepted the flight started last.
+    FlightAccepted,
+    /// The controller's motor command for the step asked last.
+    Command(MotorCommand),
+}
+
+/// The simulator's end of one controller's link without the socket: it encodes what the
+/// simulator sends, and [`ControllerLink::handle`] judges each datagram that comes back
+/// against what it waits for ([`super`] says which frames it takes). Nothing received
+/// moves the simulator's clock.
+#[derive(Clone, Debug)]
+pub struct ControllerLink {
     system_id: u8,
-    addr: SocketAddr,
     codec: Codec,
     stats: LinkStats,
+    /// The flight started last (0: none yet).
+    flight: u32,
+    /// The step asked last (µs, as answers echo it).
+    asked_us: Option<u64>,
+    awaited: Option<Awaited>,
+}
+
+impl ControllerLink {
+    /// The link to the controller of system `system_id`, signed with `signing_key` if any.
+    pub fn new(system_id: u8, signing_key: Option<[u8; 32]>) -> Self {
+        Self {
+            system_id,
+            codec: Codec::new(SIM_COMPONENT_ID, signing_key, 0),
+            stats: LinkStats::default(),
+            flight: 0,
+            asked_us: None,
+            awaited: None,
+        }
+    }
+
+    /// The controller's system id.
+    pub fn system_id(&self) -> u8 {
+        self.system_id
+    }
+
+    /// Appends the reset command starting `flight` to `out` and waits for its
+    /// acknowledgement.
+    pub fn start_flight(&mut self, flight: &NewFlight, out: &mut Vec<u8>) {
+        self.codec
+            .encode(SIM_SYSTEM_ID, &flight.command(self.system_id), out);
+        self.flight = flight.number;
+        self.awaited = Some(Awaited::Acknowledgement);
+    }
+
+    /// Appends the step at `t_ms` to `out` (the `(system id, state)` pairs in order, the
+    /// controller's own last) and waits for its answer.
+    pub fn ask_step(&mut self, t_ms: u32, states: &[(u8, NedState)], out: &mut Vec<u8>) {
+        for (id, state) in states {
+            for m in state_messages(t_ms, state) {
+                self.codec.encode(*id, &m, out);
+            }
+        }
+        self.asked_us = Some(u64::from(t_ms) * 1000);
+        self.awaited = Some(Awaited::Answer);
+    }
+
+    /// Appends the shutdown command to `out`; nothing is awaited after it.
+    pub fn shut_down(&mut self, out: &mut Vec<u8>) {
+        self.codec
+            .encode(SIM_SYSTEM_ID, &shutdown_command(self.system_id), out);
+        self.awaited = None;
+    }
+
+    /// True while the acknowledgement or answer asked for has not come.
+    pub fn awaiting(&self) -> bool {
+        self.awaited.is_some()
+    }
+
+    /// The link's counters, with the frames sent.
+    pub fn stats(&self) -> LinkStats {
+        LinkStats {
+            frames_sent: self.codec.frames_encoded(),
+            ..self.stats
+        }
+    }
+
+    /// Takes one datagram from the controller's address: returns the awaited frame if it
+    /// came, and counts every frame it drops.
+    pub fn handle(&mut self, datagram: &[u8]) -> Received {
+        let mut frames = Vec::new();
+        self.codec
+            .decode(datagram, &mut self.stats, |f, _| frames.push(f));
+        let mut received = Received::default();
+        for f in frames {
+            if f.header.system_id != u32::from(self.system_id) {
+                self.stats.wrong_system += 1;
+                continue;
+            }
+            let answer = match &f.message {
+                // Liveness only.
+                MavMessage::HEARTBEAT(_) => {
+                    received.taken += 1;
+                    continue;
+                }
+                MavMessage::COMMAND_ACK(a)
+                    if a.command == MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT =>
+                {
+                    let (number, flight) = (i64::from(a.result_param2), i64::from(self.flight));
+                    if number < flight
+                        || (number == flight && !self.awaits(Awaited::Acknowledgement))
+                    {
+                        self.stats.stale += 1;
+                        continue;
+                    } else if number > flight {
+                        self.stats.future += 1;
+                        continue;
+                    } else if a.result != MavResult::MAV_RESULT_ACCEPTED {
+                        self.stats.ignored += 1;
+                        continue;
+                    }
+                    Answer::FlightAccepted
+                }
+                MavMessage::HIL_ACTUATOR_CONTROLS(a) => match self.asked_us {
+                    Some(asked) if a.time_usec == asked && self.awaits(Awaited::Answer) => {
+                        Answer::Command(command_from_actuators(a))
+                    }
+                    Some(asked) if a.time_usec <= asked => {
+                        self.stats.stale += 1;
+                        continue;
+                    }
+                    _ => {
+                        self.stats.future += 1;
+                        continue;
+                    }
+                },
+                _ => {
+                    self.stats.ignored += 1;
+                    continue;
+                }
+            };
+            self.awaited = None;
+            received.taken += 1;
+            received.answer = Some(answer);
+        }
+        received
+    }
+
+    fn awaits(&self, what: Awaited) -> bool {
+        self.awaited == Some(what)
+    }
+}
+
+/// One controller link as the simulator holds it.
+struct Link {
+    end: ControllerLink,
+    addr: SocketAddr,
     failure: Option<String>,
     command: MotorCommand,
+}
+
+impl Link {
+    /// True while the link is live and its controller owes an answer.
+    fn owes(&self) -> bool {
+        self.failure.is_none() && self.end.awaiting()
+    }
 }
 
 /// The simulator's side of a lockstep race: a [`Crew`] whose pilots are MAVLink endpoints.
@@ -369,22 +546,20 @@ struct Lockstep<'e> {
 }
 
 impl Lockstep<'_> {
-    /// Reads frames until every live link has sent one `wanted` accepts or the timeout
-    /// passes; a link that has not is declared failed with `what` in the reason.
-    fn collect(&mut self, what: &str, mut wanted: impl FnMut(usize, &Frame) -> bool) {
-        let mut done: Vec<bool> = self.links.iter().map(|l| l.failure.is_some()).collect();
+    /// Reads datagrams until no live link owes an answer or the timeout passes; a link that
+    /// still does is declared failed with `what` in the reason. A command answer is kept in
+    /// the link's `command`.
+    fn collect(&mut self, what: &str) {
         let deadline = Instant::now() + self.timeout;
-        while done.iter().any(|d| !d) {
+        while self.links.iter().any(Link::owes) {
             let now = Instant::now();
             if now >= deadline {
-                for (l, d) in self.links.iter_mut().zip(&done) {
-                    if !d {
-                        l.failure = Some(format!(
-                            "silent: no {what} within {} ms (simulated t = {:.2} s)",
-                            self.timeout.as_millis(),
-                            f64::from(self.clock_ms) / 1000.0
-                        ));
-                    }
+                for l in self.links.iter_mut().filter(|l| l.owes()) {
+                    l.failure = Some(format!(
+                        "silent: no {what} within {} ms (simulated t = {:.2} s)",
+                        self.timeout.as_millis(),
+                        f64::from(self.clock_ms) / 1000.0
+                    ));
                 }
                 return;
             }
@@ -394,22 +569,12 @@ impl Lockstep<'_> {
             }
             match self.socket.recv_from(&mut self.buf) {
                 Ok((n, from)) => {
-                    let Some(i) = self.links.iter().position(|l| l.addr == from) else {
+                    let Some(link) = self.links.iter_mut().find(|l| l.addr == from) else {
                         self.unknown_sender += 1;
                         continue;
                     };
-                    let link = &mut self.links[i];
-                    let mut frames = Vec::new();
-                    link.codec
-                        .decode(&self.buf[..n], &mut link.stats, |f, _| frames.push(f));
-                    for f in frames {
-                        if f.header.system_id != u32::from(link.system_id) {
-                            link.stats.wrong_system += 1;
-                        } else if !done[i] && wanted(i, &f) {
-                            done[i] = true;
-                        } else if !matches!(f.message, MavMessage::HEARTBEAT(_)) {
-                            link.stats.stale += 1;
-                        }
+                    if let Some(Answer::Command(c)) = link.end.handle(&self.buf[..n]).answer {
+                        link.command = c;
                     }
                 }
                 Err(e)
@@ -420,14 +585,11 @@ impl Lockstep<'_> {
                             | io::ErrorKind::ConnectionRefused
                     ) =>
                 {
-                    self.check_processes(&mut done);
+                    self.check_processes();
                 }
                 Err(e) => {
-                    for (l, d) in self.links.iter_mut().zip(&mut done) {
-                        if !*d {
-                            l.failure = Some(format!("simulator socket error: {e}"));
-                            *d = true;
-                        }
+                    for l in self.links.iter_mut().filter(|l| l.owes()) {
+                        l.failure = Some(format!("simulator socket error: {e}"));
                     }
                 }
             }
@@ -435,14 +597,9 @@ impl Lockstep<'_> {
     }
 
     /// Declares failed, at once, the links whose controller process has exited.
-    fn check_processes(&mut self, done: &mut [bool]) {
-        for ((l, d), e) in self
-            .links
-            .iter_mut()
-            .zip(done)
-            .zip(self.endpoints.iter_mut())
-        {
-            if *d {
+    fn check_processes(&mut self) {
+        for (l, e) in self.links.iter_mut().zip(self.endpoints.iter_mut()) {
+            if !l.owes() {
                 continue;
             }
             if let Some(Ok(Some(status))) = e.child.as_mut().map(|c| c.try_wait()) {
@@ -450,7 +607,6 @@ impl Lockstep<'_> {
                     "controller process exited ({status}) at simulated t = {:.2} s",
                     f64::from(self.clock_ms) / 1000.0
                 ));
-                *d = true;
             }
         }
     }
@@ -468,25 +624,28 @@ impl Lockstep<'_> {
 impl<const N: usize> Crew<N> for Lockstep<'_> {
     fn reset(&mut self, targets: [usize; N]) {
         self.flight += 1;
-        let flight = self.flight;
+        let ids: Vec<u8> = self.links.iter().map(|l| l.end.system_id()).collect();
         let mut out = Vec::with_capacity(64);
         for (i, gate) in targets.into_iter().enumerate() {
+            let flight = NewFlight {
+                number: self.flight,
+                gate,
+                step_period_ms: self.dt_ms,
+                first_step_ms: self.clock_ms,
+                opponent: ids
+                    .iter()
+                    .enumerate()
+                    .find(|&(j, _)| j != i)
+                    .map(|(_, &id)| id),
+            };
             let Some(l) = self.links.get_mut(i).filter(|l| l.failure.is_none()) else {
                 continue;
             };
             out.clear();
-            l.codec.encode(
-                super::SIM_SYSTEM_ID,
-                &reset_command(l.system_id, gate, flight),
-                &mut out,
-            );
+            l.end.start_flight(&flight, &mut out);
             self.send(i, &out);
         }
-        self.collect("acknowledgement of the new flight", |_, f| {
-            matches!(&f.message, MavMessage::COMMAND_ACK(a)
-                if a.command == MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT
-                    && a.result_param2 == flight as i32)
-        });
+        self.collect("acknowledgement of the new flight");
         // Every controller has answered once (or failed): from now on, steps are timed.
         self.timeout = self.step_timeout;
     }
@@ -500,7 +659,7 @@ impl<const N: usize> Crew<N> for Lockstep<'_> {
             }
         }
         let ned: Vec<NedState> = states.iter().map(NedState::from_enu).collect();
-        let ids: Vec<u8> = self.links.iter().map(|l| l.system_id).collect();
+        let ids: Vec<u8> = self.links.iter().map(|l| l.end.system_id()).collect();
         let mut out = Vec::with_capacity(256);
         for i in 0..self.links.len() {
             let l = &mut self.links[i];
@@ -508,32 +667,27 @@ impl<const N: usize> Crew<N> for Lockstep<'_> {
             if l.failure.is_some() {
                 continue;
             }
-            out.clear();
             // The other vehicles first, then the own state: one datagram per step.
-            for j in (0..ned.len()).filter(|&j| j != i).chain([i]) {
-                for m in state_messages(t, &ned[j]) {
-                    l.codec.encode(ids[j], &m, &mut out);
-                }
-            }
+            let step: Vec<(u8, NedState)> = (0..ned.len())
+                .filter(|&j| j != i)
+                .chain([i])
+                .map(|j| (ids[j], ned[j]))
+                .collect();
+            out.clear();
+            l.end.ask_step(t, &step, &mut out);
             self.send(i, &out);
         }
-        let t_us = u64::from(t) * 1000;
-        let mut answers = vec![None; self.links.len()];
-        self.collect("HIL_ACTUATOR_CONTROLS for the step", |i, f| {
-            match &f.message {
-                MavMessage::HIL_ACTUATOR_CONTROLS(a) if a.time_usec == t_us => {
-                    answers[i] = Some(command_from_actuators(a));
-                    true
-                }
-                _ => false,
-            }
-        });
-        for (l, a) in self.links.iter_mut().zip(answers) {
-            if let (Some(c), None) = (a, &l.failure) {
-                l.command = c;
+        self.collect("HIL_ACTUATOR_CONTROLS for the step");
+        for l in &mut self.links {
+            if l.failure.is_some() {
+                l.command = MotorCommand::STOP;
             }
         }
-        let errors: Vec<u64> = self.links.iter().map(|l| l.stats.rejected()).collect();
+        let errors: Vec<u64> = self
+            .links
+            .iter()
+            .map(|l| l.end.stats().rejected())
+            .collect();
         self.gcs.publish(self.step, t, &ned, &errors);
         self.clock_ms += self.dt_ms;
         self.step += 1;
@@ -564,10 +718,8 @@ pub fn race(
         .iter()
         .zip(&endpoints)
         .map(|(e, ep)| Link {
-            system_id: e.system_id,
+            end: ControllerLink::new(e.system_id, config.signing_key),
             addr: ep.addr,
-            codec: Codec::new(SIM_COMPONENT_ID, config.signing_key, 0),
-            stats: LinkStats::default(),
             failure: None,
             command: MotorCommand::STOP,
         })
@@ -616,12 +768,7 @@ pub fn race(
     let mut out = Vec::new();
     for i in 0..lockstep.links.len() {
         out.clear();
-        let l = &mut lockstep.links[i];
-        l.codec.encode(
-            super::SIM_SYSTEM_ID,
-            &shutdown_command(l.system_id),
-            &mut out,
-        );
+        lockstep.links[i].end.shut_down(&mut out);
         lockstep.send(i, &out);
     }
     let tlog = lockstep.gcs.take_tlog();
@@ -656,10 +803,7 @@ pub fn race(
                 Transport::Attach(_) => "attached".into(),
             },
             failure: l.failure,
-            link: LinkStats {
-                frames_sent: l.codec.frames_encoded(),
-                ..l.stats
-            },
+            link: l.end.stats(),
         })
         .collect();
     Ok(RaceOutcome {

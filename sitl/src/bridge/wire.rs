@@ -61,10 +61,18 @@ pub struct LinkStats {
     pub bad_signature: u64,
     /// [`Reject::Replayed`] frames.
     pub replayed: u64,
-    /// Valid frames from a system id this link does not belong to.
+    /// Valid frames from a system this link does not belong to (or, for commands, addressed
+    /// to one).
     pub wrong_system: u64,
-    /// Valid frames for a step already answered or not yet asked (duplicates, stragglers).
+    /// Valid frames for a step or a flight already handled (duplicates, stragglers, replays
+    /// of old resets).
     pub stale: u64,
+    /// Valid frames stamped for a step not yet asked, or acknowledging a flight not yet
+    /// started: dropped, they never move the lockstep clock.
+    pub future: u64,
+    /// Valid frames this end takes no action on: messages it does not use, and commands it
+    /// refuses (a new flight with an out-of-range field, an unsupported command).
+    pub ignored: u64,
 }
 
 impl LinkStats {
@@ -81,7 +89,9 @@ impl LinkStats {
         *c += 1;
     }
 
-    /// Frames dropped for any reason.
+    /// Frames dropped as defective or foreign: everything but [`LinkStats::stale`],
+    /// [`LinkStats::future`] and [`LinkStats::ignored`] (the valid frames of the peer that
+    /// came at the wrong time or asked for nothing this end does).
     pub fn rejected(&self) -> u64 {
         self.malformed
             + self.bad_crc
@@ -90,6 +100,12 @@ impl LinkStats {
             + self.bad_signature
             + self.replayed
             + self.wrong_system
+    }
+
+    /// Frames dropped for any reason: every frame or datagram tail received and not acted
+    /// on is in exactly one counter.
+    pub fn dropped(&self) -> u64 {
+        self.rejected() + self.stale + self.future + self.ignored
     }
 }
 
