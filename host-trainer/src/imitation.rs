@@ -6,7 +6,7 @@
 //! otherwise; every visited state is labelled with the teacher's action, and the data of all
 //! rounds (up to `max_samples`) is fitted by mean squared error. Both students, the
 //! feed-forward one ([`imitate`]) and the recurrent one ([`imitate_recurrent`]), fly their
-//! rounds through one collector ([`collect_round`]); they differ in how they fit.
+//! rounds through one collector (`collect_round`); they differ in how they fit.
 //!
 //! Why: with the paper's reward (docs/DESIGN.md "Rewards") at this machine's budget, PPO from a random actor learns to hover
 //! and then stays there (docs/TRAINING.md has the runs). A student that already flies the

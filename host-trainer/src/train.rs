@@ -1,8 +1,8 @@
 //! The training run: the loop that starts or resumes a run, alternates rollouts
 //! ([`crate::rollout`]) and PPO updates ([`crate::ppo`]), lets the referee evaluate the
 //! policy, logs metrics and checkpoints ([`crate::run_dir`]), and exports the trained actor
-//! ([`crate::export`]). [`run`] reads top to bottom: [`start`], then [`iteration`] after
-//! iteration, each followed by [`evaluate`] and the bookkeeping, then [`finish`].
+//! ([`crate::export`]). [`run`] reads top to bottom: `start`, then `iteration` after
+//! iteration, each followed by `evaluate` and the bookkeeping, then `finish`.
 
 use crate::config::{EnvSection, TrainConfig};
 use crate::error::TrainError;

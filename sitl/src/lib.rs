@@ -6,7 +6,7 @@
 //! |---|---|
 //! | [`dynamics`] | cf2x rigid-body dynamics (RK4 substeps) and the presets `paper`, `nominal`, `realistic` |
 //! | [`world`] | worlds of one or two drones on firmware-core's figure-8: stepping, gate passes, crash rules, spawn points |
-//! | [`env`] | the vectorised environments any learner steps: time trial and race, spawns, auto-reset, reward terms, time-outs |
+//! | [`mod@env`] | the vectorised environments any learner steps: time trial and race, spawns, auto-reset, reward terms, time-outs |
 //! | [`pilot`] | who flies a drone: the classical baseline or a blob's controller (both firmware-core) |
 //! | [`referee`] | scoring of 45 s episodes: gates, crashes by cause, laps, progress, overtakes; the episode runner |
 //! | [`eval`] | many seeded episodes in parallel, aggregated with 95% intervals, as text and JSON (`sitl eval`) |
@@ -19,7 +19,7 @@
 //!
 //! The track, the gate tests, the crash rules and the observation pipeline are
 //! firmware-core's: nothing here re-implements them. Nothing here knows of a learning
-//! library: host-trainer (burn) and Python learners step [`env`] from outside.
+//! library: host-trainer (burn) and Python learners step [`mod@env`] from outside.
 #![deny(missing_docs)]
 
 pub mod bridge;

@@ -32,7 +32,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
-mod reward;
+pub mod reward;
 
 pub use reward::{Competition, RewardTerms, RewardWeights, dense_competition};
 use reward::{Rewards, StepOutcome};
