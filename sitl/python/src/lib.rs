@@ -329,24 +329,38 @@ impl RustVecEnv {
         ))
     }
 
-    /// The last step of every env apart: a dict of arrays `[num_envs]`, the reward terms
-    /// (float64, each × dt and signed: `progress`, `command`, `smoothness`, `pass`, `crash`,
-    /// `competition`; their sum is the reward before its cast to float32), the events
-    /// (bool: `gate_passed`, `crashed`, `timed_out`, `opponent_crashed`), and `final_obs`
-    /// (float32 `[num_envs, obs_dim]`: for the envs that were done, the observation of the
-    /// state the episode ended in, before the restart; other rows are stale).
+    /// The last step of every env apart, as a dict: `reward_terms` (float64
+    /// `[num_envs, 6]`, the columns `progress`, `command`, `smoothness`, `pass`, `crash`,
+    /// `competition`, each × dt and signed; a row's sum is the reward before its cast to
+    /// float32), the events (bool `[num_envs]`: `gate_passed`, `crashed`, `timed_out`,
+    /// `opponent_crashed`), and the envs that were done with the observation of the state
+    /// each episode ended in, before the restart (`final_index` int64 `[k]`, `final_rows`
+    /// float32 `[k, obs_dim]`).
     fn step_info<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let r = self.env.records();
+        let (n, od) = (self.env.num_envs(), self.env.obs_dim());
+        let shape_err = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
+        let terms: Vec<f64> = r
+            .iter()
+            .flat_map(|x| {
+                let t = &x.terms;
+                [
+                    t.progress,
+                    t.command,
+                    t.smoothness,
+                    t.pass,
+                    t.crash,
+                    t.competition,
+                ]
+            })
+            .collect();
         let d = PyDict::new(py);
-        let term = |f: fn(&sitl::env::RewardTerms) -> f64| {
-            r.iter().map(|x| f(&x.terms)).collect::<Vec<f64>>()
-        };
-        d.set_item("progress", term(|t| t.progress).into_pyarray(py))?;
-        d.set_item("command", term(|t| t.command).into_pyarray(py))?;
-        d.set_item("smoothness", term(|t| t.smoothness).into_pyarray(py))?;
-        d.set_item("pass", term(|t| t.pass).into_pyarray(py))?;
-        d.set_item("crash", term(|t| t.crash).into_pyarray(py))?;
-        d.set_item("competition", term(|t| t.competition).into_pyarray(py))?;
+        d.set_item(
+            "reward_terms",
+            Array2::from_shape_vec((n, 6), terms)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+        )?;
         d.set_item("gate_passed", bools(py, r.iter().map(|x| x.gate_passed)))?;
         d.set_item("crashed", bools(py, r.iter().map(|x| x.crashed)))?;
         d.set_item("timed_out", bools(py, r.iter().map(|x| x.timed_out)))?;
@@ -354,10 +368,20 @@ impl RustVecEnv {
             "opponent_crashed",
             bools(py, r.iter().map(|x| x.opponent_crashed)),
         )?;
-        let (n, od) = (self.env.num_envs(), self.env.obs_dim());
-        let fin = Array2::from_shape_vec((n, od), self.env.final_observations().to_vec())
-            .map_err(|e| PyValueError::new_err(e.to_string()))?;
-        d.set_item("final_obs", fin.into_pyarray(py))?;
+        let ended: Vec<usize> = (0..n).filter(|&i| self.env.dones()[i]).collect();
+        let fin = self.env.final_observations();
+        let rows: Vec<f32> = ended
+            .iter()
+            .flat_map(|&i| fin[i * od..(i + 1) * od].iter().copied())
+            .collect();
+        d.set_item(
+            "final_rows",
+            Array2::from_shape_vec((ended.len(), od), rows)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+        )?;
+        let index: Vec<i64> = ended.iter().map(|&i| i as i64).collect();
+        d.set_item("final_index", index.into_pyarray(py))?;
         Ok(d)
     }
 

@@ -102,8 +102,7 @@ class OvertakeVecEnv(VectorEnv):
     observations is the next episode's first. The observation of the state the episode
     ended in is in ``infos["final_obs"]`` (an object array, Gymnasium's convention: that
     observation at the done rows, ``None`` elsewhere; ``infos["_final_obs"]`` masks the done
-    rows) and, as one float32 array, ``infos["final_obs_array"]`` (``[num_envs, obs_dim]``,
-    valid at the done rows only).
+    rows).
 
     **Episode ends.** ``terminations``: the ego crashed (gate frame, ground, bounds, a
     collision, a diverged state). ``truncations``: the time limit, or in a race the
@@ -116,8 +115,8 @@ class OvertakeVecEnv(VectorEnv):
 
     **infos** of a step (arrays ``[num_envs]``, the step just taken, i.e. for a done env the
     episode's last step): the reward terms ``progress``, ``command``, ``smoothness``,
-    ``pass``, ``crash``, ``competition`` (float64, each × dt; their sum cast to float32 is
-    the reward), the events ``gate_passed``, ``crashed``, ``timed_out``, ``opponent_crashed``
+    ``pass``, ``crash``, ``competition`` (float64 views of one ``[num_envs, 6]`` array, each
+    × dt; their sum cast to float32 is the reward), the events ``gate_passed``, ``crashed``, ``timed_out``, ``opponent_crashed``
     (bool), and the final observations above. ``reset`` returns empty infos.
 
     Every returned array is fresh (a learner may keep it).
@@ -163,14 +162,15 @@ class OvertakeVecEnv(VectorEnv):
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         obs, rewards, terminations, truncations = self._env.step(actions)
         info = self._env.step_info()
-        final = info.pop("final_obs")
-        done = terminations | truncations
-        final_obs = np.full(self.num_envs, None, dtype=object)
-        for i in np.flatnonzero(done):
-            final_obs[i] = final[i]
+        terms = info.pop("reward_terms")
+        for k, name in enumerate(REWARD_TERMS):
+            info[name] = terms[:, k]
+        # Gymnasium's same-step convention: an object array, None where the env goes on.
+        final_obs = np.empty(self.num_envs, dtype=object)
+        rows = info.pop("final_rows")
+        final_obs[info.pop("final_index")] = np.fromiter(rows, dtype=object, count=len(rows))
         info["final_obs"] = final_obs
-        info["_final_obs"] = done
-        info["final_obs_array"] = final
+        info["_final_obs"] = terminations | truncations
         return obs, rewards, terminations, truncations, info
 
     def rollout(self, actions: np.ndarray) -> tuple[np.ndarray, ...]:
