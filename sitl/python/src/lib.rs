@@ -25,6 +25,10 @@ use sitl::dynamics::Preset;
 use sitl::env::{Competition, EnvConfig, RaceConfig, VecEnv};
 use sitl::referee::SpawnMode;
 
+/// The most envs one environment holds: a bound that keeps an absurd request a
+/// `ValueError` instead of an allocation failure, which would abort the interpreter.
+const MAX_ENVS: usize = 1 << 20;
+
 /// Rows per rayon task in [`Policy::act`].
 const POLICY_CHUNK: usize = 16;
 
@@ -131,7 +135,7 @@ impl RustVecEnv {
     #[allow(clippy::too_many_arguments)]
     fn new(
         task: &str,
-        num_envs: usize,
+        num_envs: i64,
         preset: &str,
         seed: u64,
         spawn: &str,
@@ -154,9 +158,14 @@ impl RustVecEnv {
                 )));
             }
         };
-        if num_envs == 0 {
-            return Err(PyValueError::new_err("num_envs must be at least 1"));
-        }
+        let num_envs = usize::try_from(num_envs)
+            .ok()
+            .filter(|n| (1..=MAX_ENVS).contains(n))
+            .ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "num_envs {num_envs}: expected 1 to {MAX_ENVS} (memory is allocated up front)"
+                ))
+            })?;
         let preset = Preset::by_name(preset).ok_or_else(|| {
             PyValueError::new_err(format!(
                 "preset '{preset}': expected 'paper', 'nominal' or 'realistic'"

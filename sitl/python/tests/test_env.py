@@ -219,6 +219,8 @@ def test_race_events():
         ({"preset": "fast"}, ValueError, "preset 'fast'"),
         ({"spawn": "stage2"}, ValueError, "spawn 'stage2'"),
         ({"num_envs": 0}, ValueError, "num_envs"),
+        ({"num_envs": -3}, ValueError, "num_envs"),
+        ({"num_envs": 10**12}, ValueError, "num_envs"),
         ({"episode_s": float("nan")}, ValueError, "episode_s"),
         ({"row": "G"}, ValueError, "row G"),
         ({"row": "Z"}, ValueError, "row 'Z'"),
