@@ -398,6 +398,8 @@ fn step_records_add_up_to_the_stats() {
     });
     let mut race = VecEnv::new(race_config(8, Competition::Lead)).unwrap();
     let mut events = [0u64; 4];
+    // Crashes and time-outs of the time trial, over the run.
+    let mut seen = [0u64; 2];
     for k in 0..200 {
         // Envs 0 and 1 fall, 2 and 3 hover until their time-out.
         let fall = if k < 100 { -1.0 } else { hover };
@@ -433,9 +435,14 @@ fn step_records_add_up_to_the_stats() {
                 ],
                 events
             );
+            if env.obs_dim() == 17 {
+                seen[0] += events[1];
+                seen[1] += events[2];
+            }
             events = [0; 4];
         }
     }
+    assert!(seen[0] >= 2 && seen[1] >= 2, "{seen:?}");
 }
 
 /// The final observation of an episode is the state it ended in, before the respawn: for a
