@@ -272,3 +272,21 @@ def test_strided_actions_are_read_in_logical_order():
     views = [np.ascontiguousarray(big[:, ::2]), np.asfortranarray(big[:, ::2]), big[:, ::2]]
     outs = [overtake.make_vec_env(num_envs=10, seed=4).step(v)[0] for v in views]
     assert np.array_equal(outs[0], outs[1]) and np.array_equal(outs[0], outs[2])
+
+
+def test_gymnasium_wrappers_see_the_episodes():
+    """Gymnasium's own episode statistics over this env: hovering envs of 0.5 s episodes
+    (25 steps) all end at step 25 with the summed reward; action wrappers apply."""
+    env = overtake.make_vec_env(num_envs=8, spawn="stage1", episode_s=0.5)
+    stats = gym.wrappers.vector.RecordEpisodeStatistics(env)
+    stats.reset(seed=0)
+    total = np.zeros(8)
+    for k in range(25):
+        _, rew, term, trunc, infos = stats.step(np.full((8, 4), 0.519, np.float32))
+        total += rew
+    assert trunc.all() and not term.any()
+    assert infos["_episode"].all() and np.all(infos["episode"]["l"] == 25)
+    assert np.allclose(infos["episode"]["r"], total, rtol=1e-5)
+    clipped = gym.wrappers.vector.ClipAction(overtake.make_vec_env(num_envs=8))
+    clipped.reset(seed=0)
+    assert clipped.step(np.full((8, 4), 7.0, np.float32))[1].shape == (8,)

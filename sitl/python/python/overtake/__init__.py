@@ -120,6 +120,11 @@ class OvertakeVecEnv(VectorEnv):
     (bool), and the final observations above. ``reset`` returns empty infos.
 
     Every returned array is fresh (a learner may keep it).
+
+    **Gymnasium's wrappers**: episode statistics (``RecordEpisodeStatistics``) and action and
+    reward wrappers work; Gymnasium's observation wrappers (``NormalizeObservation``, ...)
+    refuse every same-step environment (``VectorObservationWrapper`` accepts only next-step
+    or disabled autoreset), so normalise observations in the learner.
     """
 
     metadata: dict[str, Any] = {"autoreset_mode": AutoresetMode.SAME_STEP}
