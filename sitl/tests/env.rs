@@ -385,3 +385,92 @@ fn the_lead_competition_term_is_the_referees_lead() {
         eq6(&turned)
     );
 }
+
+/// The per-env records of each step add up to the batch statistics, each record's terms sum to
+/// its env's reward exactly as the reward is computed, and its events agree with `dones` and
+/// `timeouts`: a fall ends in a crash, a hover in time-outs, a race in the opponent's crashes.
+#[test]
+fn step_records_add_up_to_the_stats() {
+    let hover = ActionMap::PAPER.action_for_rpm(Preset::paper().hover_rpm());
+    let mut env = VecEnv::time_trial(EnvConfig {
+        episode_s: 0.5,
+        ..config(4)
+    });
+    let mut race = VecEnv::new(race_config(8, Competition::Lead)).unwrap();
+    let mut events = [0u64; 4];
+    // Crashes and time-outs of the time trial, over the run.
+    let mut seen = [0u64; 2];
+    for k in 0..200 {
+        // Envs 0 and 1 fall, 2 and 3 hover until their time-out.
+        let fall = if k < 100 { -1.0 } else { hover };
+        let a = [[fall; 4], [fall; 4], [hover; 4], [hover; 4]].concat();
+        for (env, a) in [(&mut env, a), (&mut race, vec![hover; 32])] {
+            env.step(&a).unwrap();
+            let mut sum = sitl::env::RewardTerms::default();
+            for (i, r) in env.records().iter().enumerate() {
+                assert_eq!(env.rewards()[i], r.terms.total() as f32);
+                assert_eq!(env.dones()[i], r.crashed || r.timed_out, "{r:?}");
+                assert_eq!(env.timeouts()[i], r.timed_out, "{r:?}");
+                assert!(!(r.crashed && r.timed_out), "{r:?}");
+                assert!(r.timed_out || !r.opponent_crashed, "{r:?}");
+                sum.progress += r.terms.progress;
+                sum.command += r.terms.command;
+                sum.smoothness += r.terms.smoothness;
+                sum.pass += r.terms.pass;
+                sum.crash += r.terms.crash;
+                sum.competition += r.terms.competition;
+                events[0] += u64::from(r.gate_passed);
+                events[1] += u64::from(r.crashed);
+                events[2] += u64::from(r.timed_out && !r.opponent_crashed);
+                events[3] += u64::from(r.opponent_crashed);
+            }
+            let stats = env.take_stats();
+            assert_eq!(stats.terms, sum);
+            assert_eq!(
+                [
+                    stats.gates_passed,
+                    stats.crashes,
+                    stats.timeouts,
+                    stats.opponent_crashes
+                ],
+                events
+            );
+            if env.obs_dim() == 17 {
+                seen[0] += events[1];
+                seen[1] += events[2];
+            }
+            events = [0; 4];
+        }
+    }
+    assert!(seen[0] >= 2 && seen[1] >= 2, "{seen:?}");
+}
+
+/// The final observation of an episode is the state it ended in, before the respawn: for a
+/// fall, firmware-core's observation of an independent world stepped to the ground.
+#[test]
+fn the_final_observation_is_the_crash_state() {
+    let mut env = VecEnv::time_trial(config(1));
+    let world = World::figure_eight(Preset::paper(), CrashRules::STAGE1);
+    let mut d = [Drone::spawned(stage1_spawn())];
+    let spec = ObservationSpec::paper(ObservationLayout::TimeTrial17);
+    let a = [-1.0f32; 4];
+    loop {
+        env.step(&a).unwrap();
+        world.step(&mut d, &[ActionMap::PAPER.command(&a)]);
+        if env.dones()[0] {
+            break;
+        }
+        assert_eq!(
+            env.observations(),
+            spec.observe(&d[0].body.state, &world.track.gate(0), &a, None)
+                .unwrap()
+                .as_slice()
+        );
+    }
+    let last = spec
+        .observe(&d[0].body.state, &world.track.gate(0), &a, None)
+        .unwrap();
+    assert!(env.records()[0].crashed);
+    assert_eq!(env.final_observations(), last.as_slice());
+    assert_ne!(env.final_observations(), env.observations());
+}

@@ -214,6 +214,26 @@ pub struct VecEnv {
     rewards: Vec<f32>,
     dones: Vec<bool>,
     timeouts: Vec<bool>,
+    records: Vec<StepRecord>,
+    /// Rows of the envs that were done in the last step: the observation of the state the
+    /// episode ended in, before the respawn (other rows are stale).
+    final_observations: Vec<f32>,
+}
+
+/// What one env's last step was made of: its reward term by term and its events. The
+/// per-step counterpart of [`EnvStats`], for learners that log or filter per env.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StepRecord {
+    /// The reward's terms; `terms.total() as f32` is the env's reward.
+    pub terms: RewardTerms,
+    /// The ego passed its target gate.
+    pub gate_passed: bool,
+    /// The ego crashed (a terminal step).
+    pub crashed: bool,
+    /// The episode reached its time limit (a truncation).
+    pub timed_out: bool,
+    /// Stage 2: the opponent crashed while the ego did not (a truncation too).
+    pub opponent_crashed: bool,
 }
 
 /// Observation size of stage 1.
@@ -286,6 +306,8 @@ impl VecEnv {
             rewards: vec![0.0; n],
             dones: vec![false; n],
             timeouts: vec![false; n],
+            records: vec![StepRecord::default(); n],
+            final_observations: vec![0.0; n * obs_dim],
             config,
         };
         for i in 0..n {
@@ -383,6 +405,19 @@ impl VecEnv {
         &self.timeouts
     }
 
+    /// Each env's last step, term by term and event by event (`num_envs` records).
+    pub fn records(&self) -> &[StepRecord] {
+        &self.records
+    }
+
+    /// `num_envs × obs_dim`, row-major: for each env whose episode ended in the last step
+    /// ([`VecEnv::dones`]), the observation of the state it ended in, taken before the
+    /// respawn (zeros when that state is not finite); the rows of the other envs are stale.
+    /// What a learner bootstraps a truncated episode from.
+    pub fn final_observations(&self) -> &[f32] {
+        &self.final_observations
+    }
+
     /// One control step of every env: `actions` is `num_envs × 4`, row-major, unclipped (the
     /// policy's samples); they are clipped to [−1, 1] (a NaN to 0) before the motors and the
     /// reward. An action slice of the wrong length is refused and nothing moves.
@@ -410,31 +445,38 @@ impl VecEnv {
         self.slots
             .par_chunks_mut(CHUNK)
             .zip(self.observations.par_chunks_mut(CHUNK * obs_dim))
+            .zip(self.final_observations.par_chunks_mut(CHUNK * obs_dim))
             .zip(self.rewards.par_chunks_mut(CHUNK))
             .zip(self.dones.par_chunks_mut(CHUNK))
             .zip(self.timeouts.par_chunks_mut(CHUNK))
+            .zip(self.records.par_chunks_mut(CHUNK))
             .zip(actions.par_chunks(CHUNK * ACTION_DIM))
-            .for_each(|(((((slots, obs), rew), done), timeout), act)| {
-                for (i, slot) in slots.iter_mut().enumerate() {
-                    let a: [f32; ACTION_DIM] = core::array::from_fn(|k| {
-                        let v = act.get(i * ACTION_DIM + k).copied().unwrap_or(0.0);
-                        if v.is_finite() {
-                            v.clamp(-1.0, 1.0)
-                        } else {
-                            0.0
+            .for_each(
+                |(((((((slots, obs), last), rew), done), timeout), record), act)| {
+                    for (i, slot) in slots.iter_mut().enumerate() {
+                        let a: [f32; ACTION_DIM] = core::array::from_fn(|k| {
+                            let v = act.get(i * ACTION_DIM + k).copied().unwrap_or(0.0);
+                            if v.is_finite() {
+                                v.clamp(-1.0, 1.0)
+                            } else {
+                                0.0
+                            }
+                        });
+                        let rec = step_slot(world, progress, map, reward, max_steps, slot, &a);
+                        let ended = rec.crashed || rec.timed_out;
+                        if ended {
+                            let row = i * obs_dim..(i + 1) * obs_dim;
+                            observe(world, spec, slot, &mut last[row]);
+                            respawn(world, progress, &rule, slot);
                         }
-                    });
-                    let (r, crashed, timed_out) =
-                        step_slot(world, progress, map, reward, max_steps, slot, &a);
-                    if crashed || timed_out {
-                        respawn(world, progress, &rule, slot);
+                        rew[i] = rec.terms.total() as f32;
+                        done[i] = ended;
+                        timeout[i] = rec.timed_out;
+                        record[i] = rec;
+                        observe(world, spec, slot, &mut obs[i * obs_dim..(i + 1) * obs_dim]);
                     }
-                    rew[i] = r;
-                    done[i] = crashed || timed_out;
-                    timeout[i] = timed_out;
-                    observe(world, spec, slot, &mut obs[i * obs_dim..(i + 1) * obs_dim]);
-                }
-            });
+                },
+            );
         Ok(())
     }
 
@@ -566,7 +608,7 @@ fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut
     slot.steps = 0;
 }
 
-/// Steps one env; returns (reward, crashed, timed out).
+/// Steps one env; returns what the step was made of.
 fn step_slot(
     world: &World,
     progress: &TrackProgress,
@@ -575,7 +617,7 @@ fn step_slot(
     max_steps: u32,
     slot: &mut Slot,
     action: &[f32; ACTION_DIM],
-) -> (f32, bool, bool) {
+) -> StepRecord {
     let d = &slot.drones[0];
     let gate = world.track.gate(d.progress.target).center_m;
     let before = d.position_m();
@@ -621,7 +663,13 @@ fn step_slot(
     slot.stats.timeouts += u64::from(timed_out && !opponent_only);
     slot.stats.opponent_crashes += u64::from(opponent_only);
     slot.stats.terms.add(&terms);
-    (terms.total() as f32, crashed, timed_out)
+    StepRecord {
+        terms,
+        gate_passed: passed,
+        crashed,
+        timed_out,
+        opponent_crashed: opponent_only,
+    }
 }
 
 fn observe(world: &World, spec: &ObservationSpec, slot: &Slot, out: &mut [f32]) {

@@ -96,6 +96,18 @@ pub enum Competition {
     Lead,
 }
 
+impl Competition {
+    /// The term called `name` ("dense", "sparse", "lead", as in training configs).
+    pub fn by_name(name: &str) -> Option<Self> {
+        match name {
+            "dense" => Some(Self::Dense),
+            "sparse" => Some(Self::Sparse),
+            "lead" => Some(Self::Lead),
+            _ => None,
+        }
+    }
+}
+
 /// The reward's weights and, in a race, the competition term and its weight.
 #[derive(Clone, Copy, Debug)]
 pub(super) struct Rewards {

@@ -1,0 +1,582 @@
+//! The Python module `overtake._overtake`: a thin layer over [`sitl::env::VecEnv`] and
+//! firmware-core's blob policies. The Gymnasium `VectorEnv` around it is Python
+//! (`python/overtake/__init__.py`); this layer only converts arguments, releases the GIL
+//! for the steps, and turns every Rust error into a Python exception with its message.
+//!
+//! Arrays cross the boundary as numpy arrays: float32 observations, actions and rewards,
+//! bool episode ends, float64 reward terms (as the environment sums them). Actions must be
+//! float32 `[num_envs, 4]` (any strides); each call returns fresh arrays, so a learner may
+//! keep the ones it was given.
+
+use firmware_core::blob::{AlignedBytes, Blob};
+use firmware_core::nn::ACTION_DIM;
+use firmware_core::observation::{Observation, ObservationSpec};
+use firmware_core::policy::{PolicyState, TableRow};
+use numpy::ndarray::{Array2, Array3};
+use numpy::{
+    IntoPyArray, PyArray1, PyArray2, PyArrayDescrMethods, PyReadonlyArray2, PyReadonlyArray3,
+    PyUntypedArray, PyUntypedArrayMethods,
+};
+use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyTypeError, PyValueError};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use rayon::prelude::*;
+use sitl::dynamics::Preset;
+use sitl::env::{Competition, EnvConfig, RaceConfig, VecEnv};
+use sitl::referee::SpawnMode;
+
+/// The most envs one environment holds: a bound that keeps an absurd request a
+/// `ValueError` instead of an allocation failure, which would abort the interpreter.
+const MAX_ENVS: usize = 1 << 20;
+
+/// Rows per rayon task in [`Policy::act`].
+const POLICY_CHUNK: usize = 16;
+
+/// The bytes of the blob at `path`, or `OSError` (`FileNotFoundError` when it is missing)
+/// naming the path.
+fn read_blob(what: &str, path: &std::path::Path) -> PyResult<AlignedBytes> {
+    let shown = path.display();
+    match std::fs::read(path) {
+        Ok(raw) => Ok(AlignedBytes::new(&raw)),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(PyFileNotFoundError::new_err(
+            format!("{what} '{shown}': {e}"),
+        )),
+        Err(e) => Err(PyOSError::new_err(format!("{what} '{shown}': {e}"))),
+    }
+}
+
+/// Refuses `arr` unless it is a float32 array whose shape matches `shape` (`None`: any
+/// length on that axis): `TypeError` for the type, `ValueError` for the shape.
+fn expect_f32(arr: &Bound<'_, PyAny>, what: &str, shape: &[Option<usize>]) -> PyResult<()> {
+    let Ok(a) = arr.cast::<PyUntypedArray>() else {
+        return Err(PyTypeError::new_err(format!(
+            "{what}: expected a numpy float32 array, got {}",
+            arr.get_type().name()?
+        )));
+    };
+    let dtype = a.dtype();
+    if !dtype.is_equiv_to(&numpy::dtype::<f32>(arr.py())) {
+        return Err(PyTypeError::new_err(format!(
+            "{what}: expected dtype float32, got {dtype}"
+        )));
+    }
+    let ok = a.ndim() == shape.len()
+        && a.shape()
+            .iter()
+            .zip(shape)
+            .all(|(got, want)| want.is_none_or(|w| w == *got));
+    if !ok {
+        let want: Vec<String> = shape
+            .iter()
+            .map(|d| d.map_or("n".to_string(), |d| d.to_string()))
+            .collect();
+        return Err(PyValueError::new_err(format!(
+            "{what}: expected shape ({}), got {:?}",
+            want.join(", "),
+            a.shape()
+        )));
+    }
+    Ok(())
+}
+
+/// The values of `a` in row-major order: one copy of the memory when `a` is C-contiguous,
+/// else element by element in logical order. (numpy's own `as_slice` also accepts a
+/// Fortran-ordered array, whose memory is column-major: rows would be mixed up.)
+fn row_major(a: numpy::ndarray::ArrayView2<'_, f32>) -> Vec<f32> {
+    match a.as_slice() {
+        Some(s) => s.to_vec(),
+        None => a.iter().copied().collect(),
+    }
+}
+
+/// A batch of stage-1 (time trial) or stage-2 (race) environments, auto-resetting.
+#[pyclass(module = "overtake._overtake")]
+struct RustVecEnv {
+    env: VecEnv,
+    config: EnvConfig,
+}
+
+fn bools<'py>(py: Python<'py>, v: impl Iterator<Item = bool>) -> Bound<'py, PyArray1<bool>> {
+    v.collect::<Vec<bool>>().into_pyarray(py)
+}
+
+impl RustVecEnv {
+    fn build(config: EnvConfig) -> PyResult<VecEnv> {
+        VecEnv::new(config).map_err(|e| PyValueError::new_err(e.to_string()))
+    }
+
+    /// `actions` as a contiguous `num_envs × 4` vector, or the exception.
+    fn actions(&self, actions: &Bound<'_, PyAny>) -> PyResult<Vec<f32>> {
+        expect_f32(
+            actions,
+            "actions",
+            &[Some(self.env.num_envs()), Some(ACTION_DIM)],
+        )?;
+        let a: PyReadonlyArray2<'_, f32> = actions.extract()?;
+        Ok(row_major(a.as_array()))
+    }
+
+    fn observations<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        let (n, d) = (self.env.num_envs(), self.env.obs_dim());
+        Array2::from_shape_vec((n, d), self.env.observations().to_vec())
+            .map(|a| a.into_pyarray(py))
+            .map_err(|e| PyValueError::new_err(e.to_string()))
+    }
+}
+
+#[pymethods]
+impl RustVecEnv {
+    /// Builds the environments; every argument is required (the defaults live in
+    /// `overtake.make_vec_env`).
+    #[new]
+    #[pyo3(signature = (*, task, num_envs, preset, seed, spawn, episode_s,
+        random_initial_episode_length, opponent, competition, competition_weight, row,
+        velocity_scale_mps, spawn_speed_mps, stage1_fraction))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        task: &str,
+        num_envs: i64,
+        preset: &str,
+        seed: u64,
+        spawn: &str,
+        episode_s: f32,
+        random_initial_episode_length: bool,
+        opponent: Option<std::path::PathBuf>,
+        competition: &str,
+        competition_weight: f32,
+        row: Option<char>,
+        velocity_scale_mps: f32,
+        spawn_speed_mps: f32,
+        stage1_fraction: f32,
+    ) -> PyResult<Self> {
+        let race = match task {
+            "time_trial" => false,
+            "race" => true,
+            _ => {
+                return Err(PyValueError::new_err(format!(
+                    "task '{task}': expected 'time_trial' or 'race'"
+                )));
+            }
+        };
+        let num_envs = usize::try_from(num_envs)
+            .ok()
+            .filter(|n| (1..=MAX_ENVS).contains(n))
+            .ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "num_envs {num_envs}: expected 1 to {MAX_ENVS} (memory is allocated up front)"
+                ))
+            })?;
+        let preset = Preset::by_name(preset).ok_or_else(|| {
+            PyValueError::new_err(format!(
+                "preset '{preset}': expected 'paper', 'nominal' or 'realistic'"
+            ))
+        })?;
+        let spawn = match SpawnMode::by_name(spawn) {
+            Some(s @ (SpawnMode::AlongTrack | SpawnMode::Stage1)) => s,
+            _ => {
+                return Err(PyValueError::new_err(format!(
+                    "spawn '{spawn}': expected 'along-track' or 'stage1' (a race always spawns as the paper's stage 2)"
+                )));
+            }
+        };
+        if !(episode_s.is_finite() && episode_s > 0.0) {
+            return Err(PyValueError::new_err(format!(
+                "episode_s {episode_s}: expected a positive number of seconds"
+            )));
+        }
+        if !(velocity_scale_mps.is_finite() && velocity_scale_mps > 0.0) {
+            return Err(PyValueError::new_err(format!(
+                "velocity_scale_mps {velocity_scale_mps}: expected a positive speed"
+            )));
+        }
+        if !(spawn_speed_mps.is_finite() && spawn_speed_mps >= 0.0) {
+            return Err(PyValueError::new_err(format!(
+                "spawn_speed_mps {spawn_speed_mps}: expected a speed >= 0"
+            )));
+        }
+        if !(0.0..=1.0).contains(&stage1_fraction) {
+            return Err(PyValueError::new_err(format!(
+                "stage1_fraction {stage1_fraction}: expected a share in [0, 1]"
+            )));
+        }
+        let row = match row {
+            None if race => TableRow::G,
+            None => TableRow::A,
+            Some(c) => TableRow::from_letter(c).ok_or_else(|| {
+                PyValueError::new_err(format!("row '{c}': Table 1 has rows A to G"))
+            })?,
+        };
+        let layout = row.observation_layout();
+        if layout.needs_opponent() != race {
+            return Err(PyValueError::new_err(format!(
+                "row {}: a {task} needs a row that observes {}",
+                row.letter(),
+                if race {
+                    "the opponent (B to G)"
+                } else {
+                    "no opponent (A)"
+                }
+            )));
+        }
+        let mut observation = ObservationSpec::paper(layout);
+        observation.velocity_scale_mps = velocity_scale_mps;
+        let race = if race {
+            let path = opponent.ok_or_else(|| {
+                PyValueError::new_err("a race needs an opponent: the path of a time-trial blob")
+            })?;
+            let competition = Competition::by_name(competition).ok_or_else(|| {
+                PyValueError::new_err(format!(
+                    "competition '{competition}': expected 'dense', 'sparse' or 'lead'"
+                ))
+            })?;
+            Some(RaceConfig {
+                opponent: read_blob("opponent", &path)?,
+                competition,
+                competition_weight,
+            })
+        } else {
+            if opponent.is_some() {
+                return Err(PyValueError::new_err(
+                    "a time trial has no opponent: pass task='race'",
+                ));
+            }
+            None
+        };
+        let config = EnvConfig {
+            num_envs,
+            preset,
+            spawn,
+            spawn_speed_mps,
+            stage1_fraction,
+            episode_s,
+            random_initial_episode_length,
+            observation,
+            seed,
+            race,
+            ..EnvConfig::paper_along_track(num_envs, seed)
+        };
+        Ok(Self {
+            env: Self::build(config.clone())?,
+            config,
+        })
+    }
+
+    /// Number of envs.
+    #[getter]
+    fn num_envs(&self) -> usize {
+        self.env.num_envs()
+    }
+
+    /// Values per observation.
+    #[getter]
+    fn obs_dim(&self) -> usize {
+        self.env.obs_dim()
+    }
+
+    /// Simulated seconds per step.
+    #[getter]
+    fn dt_s(&self) -> f32 {
+        self.env.dt_s()
+    }
+
+    /// Steps per episode before a time-out.
+    #[getter]
+    fn max_episode_steps(&self) -> u32 {
+        self.env.max_episode_steps()
+    }
+
+    /// Restarts: with a seed, the environments are rebuilt as if constructed with it (the
+    /// same spawns and initial episode lengths); without, every env starts a new episode
+    /// drawn from its own generator. Returns the observations, float32 `[num_envs, obs_dim]`.
+    #[pyo3(signature = (seed=None))]
+    fn reset<'py>(
+        &mut self,
+        py: Python<'py>,
+        seed: Option<u64>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        match seed {
+            Some(seed) => {
+                self.config.seed = seed;
+                let config = self.config.clone();
+                self.env = py.detach(|| Self::build(config))?;
+            }
+            None => py.detach(|| self.env.respawn_all()),
+        }
+        self.observations(py)
+    }
+
+    /// One step of every env with `actions` (float32 `[num_envs, 4]`; clipped to [−1, 1],
+    /// a non-finite value becomes 0). Returns (observations, rewards, terminated,
+    /// truncated): a crash terminates, a time-out (or in a race the opponent's crash alone)
+    /// truncates, and either way the env has already restarted.
+    #[allow(clippy::type_complexity)]
+    fn step<'py>(
+        &mut self,
+        py: Python<'py>,
+        actions: &Bound<'py, PyAny>,
+    ) -> PyResult<(
+        Bound<'py, PyArray2<f32>>,
+        Bound<'py, PyArray1<f32>>,
+        Bound<'py, PyArray1<bool>>,
+        Bound<'py, PyArray1<bool>>,
+    )> {
+        let actions = self.actions(actions)?;
+        py.detach(|| self.env.step(&actions))
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        let env = &self.env;
+        Ok((
+            self.observations(py)?,
+            env.rewards().to_vec().into_pyarray(py),
+            bools(
+                py,
+                env.dones()
+                    .iter()
+                    .zip(env.timeouts())
+                    .map(|(d, t)| *d && !t),
+            ),
+            bools(py, env.timeouts().iter().copied()),
+        ))
+    }
+
+    /// The last step of every env apart, as a dict: `reward_terms` (float64
+    /// `[num_envs, 6]`, the columns `progress`, `command`, `smoothness`, `pass`, `crash`,
+    /// `competition`, each × dt and signed; a row's sum is the reward before its cast to
+    /// float32), the events (bool `[num_envs]`: `gate_passed`, `crashed`, `timed_out`,
+    /// `opponent_crashed`), and the envs that were done with the observation of the state
+    /// each episode ended in, before the restart (`final_index` int64 `[k]`, `final_rows`
+    /// float32 `[k, obs_dim]`).
+    fn step_info<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let r = self.env.records();
+        let (n, od) = (self.env.num_envs(), self.env.obs_dim());
+        let shape_err = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
+        let terms: Vec<f64> = r
+            .iter()
+            .flat_map(|x| {
+                let t = &x.terms;
+                [
+                    t.progress,
+                    t.command,
+                    t.smoothness,
+                    t.pass,
+                    t.crash,
+                    t.competition,
+                ]
+            })
+            .collect();
+        let d = PyDict::new(py);
+        d.set_item(
+            "reward_terms",
+            Array2::from_shape_vec((n, 6), terms)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+        )?;
+        d.set_item("gate_passed", bools(py, r.iter().map(|x| x.gate_passed)))?;
+        d.set_item("crashed", bools(py, r.iter().map(|x| x.crashed)))?;
+        d.set_item("timed_out", bools(py, r.iter().map(|x| x.timed_out)))?;
+        d.set_item(
+            "opponent_crashed",
+            bools(py, r.iter().map(|x| x.opponent_crashed)),
+        )?;
+        let ended: Vec<usize> = (0..n).filter(|&i| self.env.dones()[i]).collect();
+        let fin = self.env.final_observations();
+        let rows: Vec<f32> = ended
+            .iter()
+            .flat_map(|&i| fin[i * od..(i + 1) * od].iter().copied())
+            .collect();
+        d.set_item(
+            "final_rows",
+            Array2::from_shape_vec((ended.len(), od), rows)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+        )?;
+        let index: Vec<i64> = ended.iter().map(|&i| i as i64).collect();
+        d.set_item("final_index", index.into_pyarray(py))?;
+        Ok(d)
+    }
+
+    /// Steps `T` times in one Rust loop, without Python in between: `actions` float32
+    /// `[T, num_envs, 4]`, contiguous. Returns (observations `[T, n, obs_dim]`, rewards
+    /// `[T, n]`, dones `[T, n]`, timeouts `[T, n]`), straight from `VecEnv`'s accessors:
+    /// the reference the Python-stepped environment is tested against.
+    #[allow(clippy::type_complexity)]
+    fn rollout<'py>(
+        &mut self,
+        py: Python<'py>,
+        actions: &Bound<'py, PyAny>,
+    ) -> PyResult<(
+        Bound<'py, numpy::PyArray3<f32>>,
+        Bound<'py, PyArray2<f32>>,
+        Bound<'py, PyArray2<bool>>,
+        Bound<'py, PyArray2<bool>>,
+    )> {
+        let (n, od) = (self.env.num_envs(), self.env.obs_dim());
+        expect_f32(actions, "actions", &[None, Some(n), Some(ACTION_DIM)])?;
+        let a: PyReadonlyArray3<'_, f32> = actions.extract()?;
+        let a = a.as_array();
+        let a = a
+            .as_slice()
+            .ok_or_else(|| PyValueError::new_err("actions: expected a C-contiguous array"))?;
+        let t = a.len() / (n * ACTION_DIM);
+        let env = &mut self.env;
+        let (obs, rew, done, timeout) = py
+            .detach(|| {
+                let (mut obs, mut rew, mut done, mut timeout) = (vec![], vec![], vec![], vec![]);
+                for step in a.chunks_exact(n * ACTION_DIM) {
+                    env.step(step).map_err(|e| e.to_string())?;
+                    obs.extend_from_slice(env.observations());
+                    rew.extend_from_slice(env.rewards());
+                    done.extend_from_slice(env.dones());
+                    timeout.extend_from_slice(env.timeouts());
+                }
+                Ok::<_, String>((obs, rew, done, timeout))
+            })
+            .map_err(PyValueError::new_err)?;
+        let shape_err = |e: numpy::ndarray::ShapeError| PyValueError::new_err(e.to_string());
+        Ok((
+            Array3::from_shape_vec((t, n, od), obs)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+            Array2::from_shape_vec((t, n), rew)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+            Array2::from_shape_vec((t, n), done)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+            Array2::from_shape_vec((t, n), timeout)
+                .map_err(shape_err)?
+                .into_pyarray(py),
+        ))
+    }
+}
+
+/// A flash blob's policy: its Gaussian means for batches of observations, with one
+/// recurrent state per row for an LSTM policy.
+#[pyclass(module = "overtake._overtake")]
+struct Policy {
+    policy: firmware_core::policy::Policy<'static>,
+    spec: ObservationSpec,
+    control_period_ns: u32,
+    /// One state per row of the batches given to `act` (empty until the first).
+    states: Vec<PolicyState>,
+}
+
+#[pymethods]
+impl Policy {
+    /// Loads the blob at `path` (validated by firmware-core: `OSError` when it cannot be
+    /// read, `ValueError` when it is not a valid blob). Its bytes stay in memory for the
+    /// rest of the process, one copy per distinct blob.
+    #[new]
+    fn new(path: std::path::PathBuf) -> PyResult<Self> {
+        let bytes = sitl::env::interned(&read_blob("policy", &path)?);
+        let invalid = |e: firmware_core::blob::BlobError| {
+            PyValueError::new_err(format!("policy '{}': {e}", path.display()))
+        };
+        let blob = Blob::parse(bytes.as_bytes()).map_err(invalid)?;
+        let policy = blob.policy().map_err(invalid)?;
+        Ok(Self {
+            policy,
+            spec: blob.header().observation,
+            control_period_ns: blob.header().control_period_ns,
+            states: Vec::new(),
+        })
+    }
+
+    /// Values per observation (17, 20 or 30).
+    #[getter]
+    fn obs_dim(&self) -> usize {
+        self.policy.obs_dim()
+    }
+
+    /// True for an LSTM policy (rows E-G).
+    #[getter]
+    fn recurrent(&self) -> bool {
+        self.policy.is_recurrent()
+    }
+
+    /// The control period the policy was trained at (ns).
+    #[getter]
+    fn control_period_ns(&self) -> u32 {
+        self.control_period_ns
+    }
+
+    /// The own-velocity scale of the observations it was trained on (m/s; pass it to
+    /// `make_vec_env(velocity_scale_mps=...)`).
+    #[getter]
+    fn velocity_scale_mps(&self) -> f32 {
+        self.spec.velocity_scale_mps
+    }
+
+    /// The Gaussian means (unclipped), float32 `[n, 4]`, for `obs` float32 `[n, obs_dim]`;
+    /// an LSTM policy advances row i's state. A recurrent policy keeps the batch size it
+    /// first saw until `reset()`.
+    fn act<'py>(
+        &mut self,
+        py: Python<'py>,
+        obs: &Bound<'py, PyAny>,
+    ) -> PyResult<Bound<'py, PyArray2<f32>>> {
+        expect_f32(obs, "obs", &[None, Some(self.policy.obs_dim())])?;
+        let o: PyReadonlyArray2<'_, f32> = obs.extract()?;
+        let o = row_major(o.as_array());
+        let dim = self.policy.obs_dim();
+        let n = o.len() / dim;
+        if self.states.len() != n {
+            if self.policy.is_recurrent() && !self.states.is_empty() {
+                return Err(PyValueError::new_err(format!(
+                    "obs: {n} rows, but the policy holds recurrent states for {}; call reset() to start over",
+                    self.states.len()
+                )));
+            }
+            self.states = vec![self.policy.initial_state(); n];
+        }
+        let policy = &self.policy;
+        let states = &mut self.states;
+        let mut out = vec![0.0f32; n * ACTION_DIM];
+        py.detach(|| {
+            out.par_chunks_mut(POLICY_CHUNK * ACTION_DIM)
+                .zip(o.par_chunks(POLICY_CHUNK * dim))
+                .zip(states.par_chunks_mut(POLICY_CHUNK))
+                .for_each(|((out, o), states)| {
+                    for ((a, o), s) in out
+                        .chunks_exact_mut(ACTION_DIM)
+                        .zip(o.chunks_exact(dim))
+                        .zip(states)
+                    {
+                        let mean = Observation::from_values(o).and_then(|o| policy.act(&o, s));
+                        a.copy_from_slice(&mean.unwrap_or([f32::NAN; ACTION_DIM]));
+                    }
+                });
+        });
+        Array2::from_shape_vec((n, ACTION_DIM), out)
+            .map(|a| a.into_pyarray(py))
+            .map_err(|e| PyValueError::new_err(e.to_string()))
+    }
+
+    /// Zeroes the recurrent state of the rows `indices` (all rows, and forgets the batch
+    /// size, when `None`).
+    #[pyo3(signature = (indices=None))]
+    fn reset(&mut self, indices: Option<Vec<i64>>) -> PyResult<()> {
+        let Some(indices) = indices else {
+            self.states.clear();
+            return Ok(());
+        };
+        let n = self.states.len();
+        for i in indices {
+            let k = usize::try_from(i).ok().filter(|k| *k < n).ok_or_else(|| {
+                PyValueError::new_err(format!("reset: row {i} out of range (0..{n})"))
+            })?;
+            if let Some(s) = self.states.get_mut(k) {
+                s.clear();
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The compiled part of the `overtake` package.
+#[pymodule]
+fn _overtake(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<RustVecEnv>()?;
+    m.add_class::<Policy>()?;
+    m.add("ACTION_DIM", ACTION_DIM)?;
+    Ok(())
+}
