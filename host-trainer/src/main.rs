@@ -8,6 +8,7 @@
 
 use clap::{Parser, Subcommand, ValueEnum};
 use firmware_core::blob::{Provenance, WeightDtype, convert_bytes};
+use firmware_core::observation::ObservationSpec;
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::config::TrainConfig;
 use host_trainer::train::{RunOptions, run};
@@ -94,6 +95,24 @@ enum Command {
         /// Name recorded in the blob's provenance.
         #[arg(long, default_value = "rsl-rl import")]
         name: String,
+        /// The own-velocity scale (m/s) of the observations the actor was trained on
+        /// (`make_vec_env(velocity_scale_mps=...)`; the paper's is 3), recorded in the blob so
+        /// the controller observes as training did.
+        #[arg(long, default_value_t = 3.0)]
+        velocity_scale_mps: f32,
+    },
+    /// Write a blob's actor as an RSL-RL safetensors file (RSL-RL's parameter names), to
+    /// start an RSL-RL run from it; the inverse of import-rslrl.
+    ExportRslrl {
+        /// The blob (f32 or int8; int8 weights are dequantised).
+        #[arg(long)]
+        blob: PathBuf,
+        /// The safetensors file to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// The action noise σ written as `std` (a blob has none).
+        #[arg(long, default_value_t = 1.0)]
+        std: f32,
     },
 }
 
@@ -152,7 +171,9 @@ fn main() -> ExitCode {
             row,
             out,
             name,
-        } => import_rslrl(&safetensors, row, &out, &name),
+            velocity_scale_mps,
+        } => import_rslrl(&safetensors, row, &out, &name, velocity_scale_mps),
+        Command::ExportRslrl { blob, out, std } => export_rslrl(&blob, &out, std),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -227,6 +248,27 @@ fn train(config: &Path, options: RunOptions) -> Result<(), String> {
     Ok(())
 }
 
+/// `export-rslrl`: the blob's actor under RSL-RL's names.
+fn export_rslrl(blob: &Path, out: &Path, std: f32) -> Result<(), String> {
+    let raw = std::fs::read(blob).map_err(|e| format!("{}: {e}", blob.display()))?;
+    let bytes = firmware_core::blob::AlignedBytes::new(&raw);
+    let parsed = firmware_core::blob::Blob::parse(bytes.as_bytes())
+        .map_err(|e| format!("{}: {e}", blob.display()))?;
+    let arch = &parsed.header().architecture;
+    let weights = parsed.dequantized();
+    let std = vec![std; usize::from(arch.action_dim)];
+    let file = host_trainer::rslrl::export_actor(arch, &weights, Some(&std))
+        .map_err(|e| format!("{}: {e}", blob.display()))?;
+    sitl::files::write_atomically(out, &file).map_err(|e| format!("{}: {e}", out.display()))?;
+    println!(
+        "{}: {} weights -> {} (RSL-RL names)",
+        blob.display(),
+        weights.len(),
+        out.display()
+    );
+    Ok(())
+}
+
 /// `export`: the actor of the latest checkpoint of the run in `out` as a blob.
 fn export(config: &Path, out: &Path, blob: &Path, dtype: WeightDtype) -> Result<(), String> {
     let cfg = TrainConfig::load(config).map_err(|e| format!("{}: {e}", config.display()))?;
@@ -249,9 +291,22 @@ fn export(config: &Path, out: &Path, blob: &Path, dtype: WeightDtype) -> Result<
 }
 
 /// `import-rslrl`: an RSL-RL actor as a blob of Table 1 row `r`.
-fn import_rslrl(safetensors: &Path, r: char, out: &Path, name: &str) -> Result<(), String> {
+fn import_rslrl(
+    safetensors: &Path,
+    r: char,
+    out: &Path,
+    name: &str,
+    velocity_scale_mps: f32,
+) -> Result<(), String> {
     let row =
         TableRow::from_letter(r).ok_or_else(|| format!("--row {r}: not a Table 1 row A-G"))?;
+    if !(velocity_scale_mps.is_finite() && velocity_scale_mps > 0.0) {
+        return Err(format!(
+            "--velocity-scale-mps {velocity_scale_mps}: expected a positive speed"
+        ));
+    }
+    let mut observation = ObservationSpec::paper(row.observation_layout());
+    observation.velocity_scale_mps = velocity_scale_mps;
     let arch = Architecture::table1(row);
     let bytes =
         std::fs::read(safetensors).map_err(|e| format!("{}: {e}", safetensors.display()))?;
@@ -262,8 +317,9 @@ fn import_rslrl(safetensors: &Path, r: char, out: &Path, name: &str) -> Result<(
         .name
         .push_str(name)
         .map_err(|_| "--name: at most 32 bytes".to_string())?;
-    let blob = host_trainer::export::export_blob(row, provenance, &weights)
-        .map_err(|e| format!("export: {e:?}"))?;
+    let header = host_trainer::export::blob_header(row, provenance, observation);
+    let blob =
+        firmware_core::blob::encode(&header, &weights).map_err(|e| format!("export: {e:?}"))?;
     sitl::files::write_atomically(out, &blob).map_err(|e| format!("{}: {e}", out.display()))?;
     println!(
         "{}: row {r} actor, {} weights -> {} ({} bytes)",

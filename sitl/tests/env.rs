@@ -474,3 +474,24 @@ fn the_final_observation_is_the_crash_state() {
     assert_eq!(env.final_observations(), last.as_slice());
     assert_ne!(env.final_observations(), env.observations());
 }
+
+/// RSL-RL's `init_at_random_ep_len` writes the episode-length buffer: an env set one step
+/// short of the limit times out at its next step and only then; the others run on; a
+/// wrong-length slice is refused and changes nothing.
+#[test]
+fn episode_steps_set_from_outside_move_the_time_outs() {
+    let mut env = VecEnv::time_trial(config(3));
+    let max = env.max_episode_steps();
+    let hover = [0.5f32; 12];
+    env.step(&hover).unwrap();
+    assert_eq!(env.episode_steps(), vec![1, 1, 1]);
+    assert!(env.set_episode_steps(&[0, 0]).is_err());
+    assert_eq!(env.episode_steps(), vec![1, 1, 1]);
+    env.set_episode_steps(&[max - 1, max - 2, 7]).unwrap();
+    env.step(&hover).unwrap();
+    assert_eq!(env.timeouts(), &[true, false, false]);
+    assert_eq!(env.episode_steps(), vec![0, max - 1, 8]);
+    env.step(&hover).unwrap();
+    assert_eq!(env.timeouts(), &[false, true, false]);
+    assert_eq!(env.episode_steps(), vec![1, 0, 9]);
+}

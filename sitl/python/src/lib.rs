@@ -285,6 +285,65 @@ impl RustVecEnv {
         self.env.max_episode_steps()
     }
 
+    /// Steps each env's current episode has run (int64 `[num_envs]`); an episode times
+    /// out when its count reaches `max_episode_steps`.
+    #[getter]
+    fn episode_steps<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray1<i64>> {
+        self.env
+            .episode_steps()
+            .into_iter()
+            .map(i64::from)
+            .collect::<Vec<_>>()
+            .into_pyarray(py)
+    }
+
+    /// Sets the step counts of the current episodes (one integer >= 0 per env), as RSL-RL's
+    /// `init_at_random_ep_len` does; nothing else changes. `ValueError` for a wrong length
+    /// or a negative count, and nothing changes then.
+    #[setter]
+    fn set_episode_steps(&mut self, steps: Vec<i64>) -> PyResult<()> {
+        let steps: Vec<u32> = steps
+            .iter()
+            .map(|&s| {
+                u32::try_from(s).map_err(|_| {
+                    PyValueError::new_err(format!(
+                        "episode step count {s}: expected an integer from 0 to {}",
+                        u32::MAX
+                    ))
+                })
+            })
+            .collect::<PyResult<_>>()?;
+        self.env
+            .set_episode_steps(&steps)
+            .map_err(|e| PyValueError::new_err(e.to_string()))
+    }
+
+    /// What happened since the last call, summed over envs, and reset: `steps`,
+    /// `gates_passed`, `crashes`, `timeouts`, `opponent_crashes` (int) and each reward
+    /// term's sum (float, the names of `reward_terms`). Cheap: for a learner's logs without
+    /// `step_info` every step.
+    fn take_stats<'py>(&mut self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let s = self.env.take_stats();
+        let d = PyDict::new(py);
+        d.set_item("steps", s.steps)?;
+        d.set_item("gates_passed", s.gates_passed)?;
+        d.set_item("crashes", s.crashes)?;
+        d.set_item("timeouts", s.timeouts)?;
+        d.set_item("opponent_crashes", s.opponent_crashes)?;
+        let t = &s.terms;
+        for (name, v) in [
+            ("progress", t.progress),
+            ("command", t.command),
+            ("smoothness", t.smoothness),
+            ("pass", t.pass),
+            ("crash", t.crash),
+            ("competition", t.competition),
+        ] {
+            d.set_item(name, v)?;
+        }
+        Ok(d)
+    }
+
     /// Restarts: with a seed, the environments are rebuilt as if constructed with it (the
     /// same spawns and initial episode lengths); without, every env starts a new episode
     /// drawn from its own generator. Returns the observations, float32 `[num_envs, obs_dim]`.

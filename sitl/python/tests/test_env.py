@@ -290,3 +290,44 @@ def test_gymnasium_wrappers_see_the_episodes():
     clipped = gym.wrappers.vector.ClipAction(overtake.make_vec_env(num_envs=8))
     clipped.reset(seed=0)
     assert clipped.step(np.full((8, 4), 7.0, np.float32))[1].shape == (8,)
+
+
+def test_episode_steps_are_read_and_written():
+    """RSL-RL's init_at_random_ep_len writes the episode counters: an env one step short of
+    the limit truncates at its next step, the others go on; a bad write changes nothing."""
+    env = make("time_trial", num_envs=3, spawn="stage1")
+    raw = env._env
+    limit = raw.max_episode_steps
+    hover = np.full((3, 4), 0.5, np.float32)
+    raw.step(hover)
+    assert raw.episode_steps.tolist() == [1, 1, 1]
+    assert raw.episode_steps.dtype == np.int64
+    with pytest.raises(ValueError, match="one per env"):
+        raw.episode_steps = [0, 0]
+    with pytest.raises(ValueError, match="episode step count -1"):
+        raw.episode_steps = [0, -1, 0]
+    assert raw.episode_steps.tolist() == [1, 1, 1]
+    raw.episode_steps = [limit - 1, 5, 0]
+    _, _, terminated, truncated = raw.step(hover)
+    assert truncated.tolist() == [True, False, False]
+    assert not terminated.any()
+    assert raw.episode_steps.tolist() == [0, 6, 1]
+
+
+def test_take_stats_counts_what_step_info_reports():
+    env = make("time_trial", num_envs=64, seed=3)
+    env._env.take_stats()
+    rng = np.random.default_rng(0)
+    gates = crashes = steps = 0
+    progress = 0.0
+    for _ in range(300):
+        _, _, term, _, info = env.step(actions(rng, 64, scale=0.3))
+        gates += int(info["gate_passed"].sum())
+        crashes += int(term.sum())
+        progress += float(info["progress"].sum())
+        steps += 64
+    s = env._env.take_stats()
+    assert crashes > 0
+    assert (s["steps"], s["gates_passed"], s["crashes"]) == (steps, gates, crashes)
+    assert s["progress"] == pytest.approx(progress, rel=1e-9, abs=1e-12)
+    assert env._env.take_stats()["steps"] == 0

@@ -379,6 +379,29 @@ impl VecEnv {
         self.max_steps
     }
 
+    /// Steps each env's current episode has run (`num_envs` values; an episode times out
+    /// when its count reaches [`VecEnv::max_episode_steps`]).
+    pub fn episode_steps(&self) -> Vec<u32> {
+        self.slots.iter().map(|s| s.steps).collect()
+    }
+
+    /// Sets how many steps each env's current episode has run, as RSL-RL's runner does to
+    /// spread time-outs (`init_at_random_ep_len`): an env set to `max_episode_steps() - 1`
+    /// times out at its next step, one set at or beyond the limit too. Nothing else about
+    /// the episodes changes. A slice of the wrong length is refused and nothing changes.
+    pub fn set_episode_steps(&mut self, steps: &[u32]) -> Result<(), EpisodeStepsError> {
+        if steps.len() != self.slots.len() {
+            return Err(EpisodeStepsError {
+                expected: self.slots.len(),
+                got: steps.len(),
+            });
+        }
+        for (slot, &s) in self.slots.iter_mut().zip(steps) {
+            slot.steps = s;
+        }
+        Ok(())
+    }
+
     /// The observation spec every observation follows (recorded in exported blobs).
     pub fn observation_spec(&self) -> ObservationSpec {
         self.spec
@@ -570,6 +593,27 @@ impl core::fmt::Display for ActionShapeError {
 }
 
 impl std::error::Error for ActionShapeError {}
+
+/// The counts given to [`VecEnv::set_episode_steps`] are not one per env.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct EpisodeStepsError {
+    /// Values expected (`num_envs`).
+    pub expected: usize,
+    /// Values given.
+    pub got: usize,
+}
+
+impl core::fmt::Display for EpisodeStepsError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(
+            f,
+            "expected {} episode step counts (one per env), got {}",
+            self.expected, self.got
+        )
+    }
+}
+
+impl std::error::Error for EpisodeStepsError {}
 
 /// How an env respawns.
 #[derive(Clone, Copy, Debug)]

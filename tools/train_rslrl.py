@@ -1,0 +1,281 @@
+#!/usr/bin/env python3
+"""Train a racing policy with RSL-RL (the paper's PPO) on overtake's environments, then take it
+to a flash blob and the referee.
+
+    python3 tools/train_rslrl.py --out runs/rslrl_A --row A --iterations 20
+
+What it does, in order:
+
+1. builds ``overtake.rslrl.VecEnv`` (the Rust environments) and RSL-RL's ``OnPolicyRunner``
+   with the paper's PPO config for the row (``overtake.rslrl.paper_train_cfg``), optionally
+   starting the actor from a blob (``--init-blob``, through ``host-trainer export-rslrl``);
+2. trains, writing one JSON line per iteration to ``OUT/metrics.jsonl`` (samples, wall-clock,
+   collection and update seconds, gates and crashes per simulated second, reward terms, and,
+   every ``--eval-every`` iterations, the referee's success, crash rate and best lap);
+3. exports the actor (``OUT/actor.safetensors``, RSL-RL's names), converts it with
+   ``host-trainer import-rslrl`` into ``OUT/policy.blob``, and checks the blob against
+   PyTorch: the blob's actions (firmware-core, through ``overtake.Policy``) and the actor's
+   ``act_inference`` on the same observations, a rollout of the actor itself, resetting
+   both at episode ends for an LSTM row. Prints the max abs error and fails above 1e-5;
+4. referees the blob (``sitl eval``, 45 s episodes from the stage-1 spawn for a time trial,
+   races against the opponent for a race) and prints the result.
+
+Rows: A (time trial, MLP 2x128) and the LSTM rows E, F, G (races against ``--opponent``,
+``policies/stage1_guarded.blob`` by default). Needs PyTorch, rsl-rl-lib 2.2.4, tensorboard,
+safetensors and the ``overtake`` package (README "Train from Python"); the Rust binaries
+are run with ``cargo run --release``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.torch import load_file, save_file
+
+import overtake
+from overtake.rslrl import VecEnv, actor_state_dict, paper_train_cfg
+
+try:
+    from rsl_rl.runners import OnPolicyRunner
+except ImportError as e:  # pragma: no cover
+    sys.exit(f"error: {e}; pip install rsl-rl-lib==2.2.4 tensorboard")
+
+REPO = Path(__file__).resolve().parent.parent
+#: The largest |blob - PyTorch| difference of an action the round trip accepts.
+PARITY_TOLERANCE = 1e-5
+
+
+def cargo(package: str, *args: str) -> str:
+    """Runs a workspace binary (built on first use) and returns its stdout."""
+    cmd = ["cargo", "run", "--release", "-q", "-p", package, "--", *args]
+    done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+    if done.returncode != 0:
+        sys.exit(f"error: {' '.join(cmd)} failed:\n{done.stderr.strip()}")
+    return done.stdout
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", type=Path, required=True, help="run directory (created)")
+    p.add_argument("--row", default="A", choices=["A", "E", "F", "G"], help="Table 1 row")
+    p.add_argument("--iterations", type=int, default=20, help="PPO iterations")
+    p.add_argument("--num-envs", type=int, default=4096)
+    p.add_argument("--steps-per-env", type=int, default=100, help="rollout length")
+    p.add_argument("--seed", type=int, default=1, help="torch and environment seed")
+    p.add_argument("--threads", type=int, default=2, help="torch threads")
+    p.add_argument("--init-blob", type=Path, help="start the actor from this blob's weights")
+    p.add_argument("--init-std", type=float, default=1.0, help="initial action noise σ")
+    p.add_argument("--lr", type=float, help="initial learning rate (default: the paper's)")
+    p.add_argument("--entropy", type=float, help="entropy coefficient (default: the paper's)")
+    p.add_argument("--desired-kl", type=float, help="adaptive lr KL target (paper 0.01)")
+    p.add_argument("--epochs", type=int, help="epochs per update (paper 5)")
+    p.add_argument("--minibatches", type=int, help="minibatches per epoch (paper 4)")
+    p.add_argument("--eval-every", type=int, default=0, help="referee every K iterations (0: end only)")
+    p.add_argument("--eval-episodes", type=int, default=20)
+    p.add_argument("--eval-seed", type=int, default=0)
+    p.add_argument("--preset", default="paper")
+    p.add_argument("--spawn", default="along-track", choices=["along-track", "stage1"])
+    p.add_argument("--episode-s", type=float, default=15.0)
+    p.add_argument("--spawn-speed-mps", type=float, default=0.0)
+    p.add_argument("--stage1-fraction", type=float, default=0.0)
+    p.add_argument(
+        "--velocity-scale-mps",
+        type=float,
+        help="observation velocity scale (default: --init-blob's, else the paper's 3 m/s)",
+    )
+    p.add_argument("--opponent", type=Path, default=REPO / "policies/stage1_guarded.blob")
+    p.add_argument("--parity-envs", type=int, default=256, help="envs of the parity rollout")
+    p.add_argument("--parity-steps", type=int, default=200, help="steps of the parity rollout")
+    return p.parse_args(argv)
+
+
+def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    race = args.row != "A"
+    kw: dict[str, Any] = {
+        "task": "race" if race else "time_trial",
+        "preset": args.preset,
+        "seed": args.seed,
+        "episode_s": args.episode_s,
+        "row": args.row,
+        "velocity_scale_mps": args.velocity_scale_mps,
+    }
+    if race:
+        kw["opponent"] = args.opponent
+    else:
+        kw.update(
+            spawn=args.spawn,
+            spawn_speed_mps=args.spawn_speed_mps,
+            stage1_fraction=args.stage1_fraction,
+        )
+    return kw
+
+
+def export_blob(policy: torch.nn.Module, args: argparse.Namespace, name: str) -> Path:
+    """The actor as ``OUT/NAME.safetensors`` and ``OUT/NAME.blob``."""
+    st = args.out / f"{name}.safetensors"
+    save_file(actor_state_dict(policy), str(st))
+    blob = args.out / f"{name}.blob"
+    cargo(
+        "host-trainer", "import-rslrl", "--safetensors", str(st), "--row", args.row,
+        "--out", str(blob), "--name", f"rsl-rl {args.row} seed {args.seed}",
+        "--velocity-scale-mps", str(args.velocity_scale_mps),
+    )  # fmt: skip
+    return blob
+
+
+def referee(blob: Path, args: argparse.Namespace) -> dict[str, Any]:
+    """``sitl eval`` of the blob: the referee's JSON."""
+    out = args.out / "eval.json"
+    cmd = ["eval", "--ego", str(blob), "--preset", args.preset, "--episodes",
+           str(args.eval_episodes), "--seed", str(args.eval_seed), "--json", str(out)]  # fmt: skip
+    if args.row != "A":
+        cmd += ["--opponent", str(args.opponent)]
+    cargo("sitl", *cmd)
+    return json.loads(out.read_text())
+
+
+def parity(policy: torch.nn.Module, blob: Path, args: argparse.Namespace) -> float:
+    """Max |blob − PyTorch| over the actions of a rollout flown by the PyTorch actor's means
+    (fresh environments, both policies reset at every episode end)."""
+    kw = env_kwargs(args) | {"num_envs": args.parity_envs, "seed": args.seed + 1_000_003}
+    env = VecEnv(**kw)
+    deployed = overtake.Policy(blob)
+    policy.eval()
+    recurrent = hasattr(policy, "memory_a")
+    if recurrent:
+        policy.memory_a.hidden_states = None
+        policy.memory_c.hidden_states = None
+    obs, _ = env.get_observations()
+    worst = 0.0
+    with torch.no_grad():
+        for _ in range(args.parity_steps):
+            mean = policy.act_inference(obs)
+            blob_mean = deployed.act(obs.numpy())
+            worst = max(worst, float(np.max(np.abs(blob_mean - mean.numpy()))))
+            obs, _, dones, _ = env.step(mean)
+            if recurrent and bool(dones.any()):
+                policy.reset(dones)
+                deployed.reset(dones.nonzero().flatten().tolist())
+    return worst
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    torch.manual_seed(args.seed)
+    torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.velocity_scale_mps is None:
+        args.velocity_scale_mps = (
+            overtake.Policy(args.init_blob).velocity_scale_mps if args.init_blob else 3.0
+        )
+
+    env = VecEnv(num_envs=args.num_envs, **env_kwargs(args))
+    cfg = paper_train_cfg(args.row)
+    cfg["num_steps_per_env"] = args.steps_per_env
+    cfg["save_interval"] = max(args.iterations, 1)
+    cfg["policy"]["init_noise_std"] = args.init_std
+    if args.lr is not None:
+        cfg["algorithm"]["learning_rate"] = args.lr
+    for key, value in [
+        ("entropy_coef", args.entropy),
+        ("desired_kl", args.desired_kl),
+        ("num_learning_epochs", args.epochs),
+        ("num_mini_batches", args.minibatches),
+    ]:
+        if value is not None:
+            cfg["algorithm"][key] = value
+    (args.out / "train_cfg.json").write_text(json.dumps(cfg | {"env": env.cfg}, indent=1, default=str))
+    runner = OnPolicyRunner(env, cfg, log_dir=str(args.out / "rsl_rl"), device="cpu")
+    policy = runner.alg.actor_critic
+
+    if args.init_blob:
+        st = args.out / "init.safetensors"
+        cargo("host-trainer", "export-rslrl", "--blob", str(args.init_blob), "--out", str(st),
+              "--std", str(args.init_std))  # fmt: skip
+        missing, unexpected = policy.load_state_dict(load_file(str(st)), strict=False)
+        if unexpected or any(k.startswith(("actor.", "memory_a.", "std")) for k in missing):
+            sys.exit(f"error: {args.init_blob} does not fit row {args.row}: {missing} {unexpected}")
+
+    metrics = (args.out / "metrics.jsonl").open("w")
+    samples_per_iteration = args.num_envs * args.steps_per_env
+    # Wall-clock of training only: the referee's evaluations are timed apart (eval_s).
+    clock = {"start": time.perf_counter(), "last": time.perf_counter(), "iteration": 0, "eval": 0.0}
+    update = runner.alg.update
+
+    def update_and_log() -> tuple:
+        t0 = time.perf_counter()
+        losses = update()
+        t1 = time.perf_counter()
+        clock["iteration"] += 1
+        it = clock["iteration"]
+        totals = env.take_totals()
+        sim_s = max(totals["steps"], 1) * env.step_dt
+        row: dict[str, Any] = {
+            "iteration": it,
+            "samples": it * samples_per_iteration,
+            "wall_s": round(t1 - clock["start"] - clock["eval"], 3),
+            "collect_s": round(t0 - clock["last"], 3),
+            "update_s": round(t1 - t0, 3),
+            "gates_per_s": totals["gates_passed"] / sim_s,
+            "crashes_per_s": totals["crashes"] / sim_s,
+            "reward_per_step": {k: totals[k] / max(totals["steps"], 1) for k in overtake.REWARD_TERMS},
+            "value_loss": losses[0],
+            "surrogate_loss": losses[1],
+            "entropy": losses[2],
+            "learning_rate": runner.alg.learning_rate,
+            "std": float(policy.std.detach().mean()),
+        }
+        if args.eval_every and it % args.eval_every == 0 and it < args.iterations:
+            t2 = time.perf_counter()
+            e = referee(export_blob(policy, args, "eval"), args)
+            row |= {"eval_success": e["success_rate"], "eval_crash_rate": e["crash_rate"],
+                    "eval_best_lap_s": e["best_lap_s"]}  # fmt: skip
+            clock["eval"] += time.perf_counter() - t2
+        metrics.write(json.dumps(row) + "\n")
+        metrics.flush()
+        print(
+            f"it {it:4d}  {row['samples'] / 1e6:7.1f} M samples  {row['wall_s']:7.0f} s  "
+            f"{samples_per_iteration / (t1 - clock['last']) / 1e3:5.1f} k samples/s  "
+            f"gates {row['gates_per_s']:.3f}/s  crashes {row['crashes_per_s']:.3f}/s"
+            + (f"  referee success {row['eval_success']:.2f}" if "eval_success" in row else ""),
+            flush=True,
+        )
+        clock["last"] = time.perf_counter()
+        return losses
+
+    runner.alg.update = update_and_log
+    runner.learn(args.iterations, init_at_random_ep_len=True)
+    wall = clock["last"] - clock["start"] - clock["eval"]
+    samples = args.iterations * samples_per_iteration
+    print(f"trained {args.iterations} iterations, {samples / 1e6:.1f} M samples in {wall:.0f} s "
+          f"({samples / wall / 1e3:.1f} k samples/s end to end)")  # fmt: skip
+
+    blob = export_blob(policy, args, "policy")
+    err = parity(policy, blob, args)
+    print(f"parity: max |blob - PyTorch| = {err:.3g} over {args.parity_envs} envs x "
+          f"{args.parity_steps} steps (tolerance {PARITY_TOLERANCE:g})")  # fmt: skip
+    e = referee(blob, args)
+    lap = "DNF" if e["best_lap_s"] is None else f"{e['best_lap_s']:.2f} s"
+    print(f"referee ({e['episodes']} episodes of {e['episode_seconds']:.0f} s, seed {e['seed']}): "
+          f"success {e['success_rate']:.3f}, crashes {e['crash_rate']:.3f} /s, best lap {lap}")  # fmt: skip
+    (args.out / "summary.json").write_text(json.dumps({
+        "iterations": args.iterations, "samples": samples, "wall_s": wall,
+        "samples_per_s": samples / wall, "parity_max_abs_err": err, "referee": e,
+        "blob": str(blob),
+    }, indent=1))  # fmt: skip
+    if not err <= PARITY_TOLERANCE:
+        print(f"error: the blob differs from PyTorch by {err:.3g} > {PARITY_TOLERANCE:g}")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
