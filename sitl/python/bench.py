@@ -15,8 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-import overtake
-
 OPPONENT = Path(__file__).resolve().parents[2] / "policies" / "stage1_guarded.blob"
 
 
@@ -49,6 +47,8 @@ def main() -> None:
     p.add_argument("--num-envs", type=int, default=4096)
     p.add_argument("--seconds", type=float, default=5.0, help="per measurement")
     args = p.parse_args()
+    import overtake  # here, so that bench_others.py can share cpu_model without it
+
     n = args.num_envs
     print(f"CPU: {cpu_model()} ({os.cpu_count()} logical CPUs), Python {platform.python_version()}")
     rng = np.random.default_rng(0)
