@@ -6,7 +6,7 @@ use std::process::ExitCode;
 use firmware_core::blob::{WeightDtype, convert_bytes};
 use firmware_core::policy::TableRow;
 
-use crate::{cortex_m, figure, inspect, size};
+use crate::{cortex_m, curves, figure, inspect, size};
 
 fn parse_figure(args: &[&str]) -> Result<Command, String> {
     let (mut trace, mut episode, mut overtake, mut window_s, mut out) =
@@ -43,6 +43,30 @@ fn parse_figure(args: &[&str]) -> Result<Command, String> {
         window_s,
         out,
     }))
+}
+
+fn parse_curves(args: &[&str]) -> Result<Command, String> {
+    let (mut runs, mut out) = (Vec::new(), PathBuf::from("learning_curves.svg"));
+    let mut it = args.iter();
+    while let Some(flag) = it.next() {
+        let value = it.next().ok_or_else(|| format!("{flag} needs a value"))?;
+        match *flag {
+            "--run" => {
+                let (dir, label) = match value.split_once('=') {
+                    Some((d, l)) if !d.is_empty() && !l.is_empty() => (d, l.to_string()),
+                    Some(_) => return Err(format!("--run takes DIR or DIR=LABEL, not `{value}`")),
+                    None => (*value, value.to_string()),
+                };
+                runs.push((PathBuf::from(dir), label));
+            }
+            "--out" => out = PathBuf::from(value),
+            other => return Err(format!("learning-curves: unknown flag `{other}`")),
+        }
+    }
+    if runs.is_empty() {
+        return Err("learning-curves needs at least one --run DIR[=LABEL]".into());
+    }
+    Ok(Command::LearningCurves(curves::CurvesArgs { runs, out }))
 }
 
 fn parse_synth(args: &[&str]) -> Result<Command, String> {
@@ -162,6 +186,11 @@ subcommands:
                             draw an overtake of a recorded race from above (the paper's
                             Fig. 3): the ego's and opponent's paths over S seconds (8)
                             around it; FILE from `sitl race --trace` or `sitl eval --trace`
+  learning-curves --run DIR[=LABEL] ... [--out F.svg]
+                            training runs on one page (metrics.jsonl of `host-trainer
+                            train` or tools/train_rslrl.py): referee success and lap,
+                            rollout gates and crashes, σ against samples and wall-clock,
+                            beside the authors' run (no gate in 410 M samples)
   cortex-m test             build and run the Cortex-M4 test image under QEMU
   cortex-m icount           instructions per Controller::step on the emulated Cortex-M4
                             (QEMU -icount shift=0); --breakdown: per layer and kernel
@@ -196,6 +225,8 @@ pub enum Command {
     },
     /// Draw an overtake from a recorded race.
     OvertakeFigure(figure::FigureArgs),
+    /// Draw training runs' learning curves on one page.
+    LearningCurves(curves::CurvesArgs),
     /// Run the QEMU test image.
     CortexMTest,
     /// Run the instruction-count bench (`breakdown`: the per-layer image).
@@ -218,6 +249,7 @@ pub fn parse(args: &[String]) -> Result<Command, String> {
         ["synth-blob", rest @ ..] => parse_synth(rest),
         ["convert", rest @ ..] => parse_convert(rest),
         ["overtake-figure", rest @ ..] => parse_figure(rest),
+        ["learning-curves", rest @ ..] => parse_curves(rest),
         ["cortex-m", "test"] => Ok(Command::CortexMTest),
         ["cortex-m", "icount"] => Ok(Command::CortexMIcount { breakdown: false }),
         ["cortex-m", "icount", "--breakdown"] => Ok(Command::CortexMIcount { breakdown: true }),
@@ -245,6 +277,7 @@ pub fn main(args: Vec<String>) -> ExitCode {
         Command::SynthBlob { row, seed, out } => synth_blob(row, seed, &out),
         Command::Convert { dtype, input, out } => convert(dtype, &input, &out),
         Command::OvertakeFigure(args) => figure::run(&args),
+        Command::LearningCurves(args) => curves::run(&args),
         Command::CortexMTest => cortex_m::run_tests(),
         Command::CortexMIcount { breakdown } => cortex_m::run_icount(breakdown),
     };
@@ -282,6 +315,26 @@ mod tests {
             Ok(Command::CortexMIcount { breakdown: true })
         );
         assert_eq!(parse(&args(&["--help"])), Ok(Command::Help));
+        assert_eq!(
+            parse(&args(&[
+                "learning-curves",
+                "--run",
+                "runs/a=ours, seed 1",
+                "--run",
+                "runs/b",
+                "--out",
+                "c.svg"
+            ])),
+            Ok(Command::LearningCurves(curves::CurvesArgs {
+                runs: vec![
+                    ("runs/a".into(), "ours, seed 1".into()),
+                    ("runs/b".into(), "runs/b".into())
+                ],
+                out: "c.svg".into()
+            }))
+        );
+        assert!(parse(&args(&["learning-curves"])).is_err());
+        assert!(parse(&args(&["learning-curves", "--run", "=x"])).is_err());
         assert_eq!(
             parse(&args(&["synth-blob", "--row", "g", "--out", "g.blob"])),
             Ok(Command::SynthBlob {

@@ -6,6 +6,8 @@
 //!   `firmware`) and report their flash and RAM from the ELF against an STM32F405;
 //! * `overtake-figure --trace FILE`: an overtake of a recorded race drawn from above, like
 //!   the paper's Fig. 3 ([`figure`]);
+//! * `learning-curves --run DIR[=LABEL] ...`: training runs (ours or RSL-RL's) against
+//!   samples and wall-clock on one page, beside the authors' run ([`curves`]);
 //! * `cortex-m test`, `cortex-m icount [--breakdown]`: run the QEMU test image or the
 //!   instruction-count bench (`tools/cortex-m-tests`, see `docs/cortex-m.md`).
 //!
@@ -14,6 +16,7 @@
 
 pub mod cli;
 pub mod cortex_m;
+pub mod curves;
 pub mod error;
 pub mod figure;
 pub mod inspect;
