@@ -17,22 +17,12 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import time
 
 import numpy as np
 
-from bench import cpu_model
+from bench import cpu_model, rate
 
 CONTROL_HZ = 50
-
-
-def timed(step, seconds: float, num_envs: int) -> float:
-    """Env-steps/s of `step()` (one call = one step of `num_envs` envs) over about `seconds`."""
-    steps, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        step()
-        steps += 1
-    return steps * num_envs / (time.perf_counter() - start)
 
 
 def crazyflow_rate(n: int, seconds: float) -> tuple[str, float]:
@@ -45,19 +35,16 @@ def crazyflow_rate(n: int, seconds: float) -> tuple[str, float]:
     rng = np.random.default_rng(0)
     low, high = env.action_space.low, env.action_space.high
     actions = [rng.uniform(low, high).astype(np.float32) for _ in range(16)]
-    i = [0]
 
-    def step():
-        obs, *_ = env.step(actions[i[0] % len(actions)])
+    def step(a):
+        obs, *_ = env.step(a)
         jax.block_until_ready(obs)
-        i[0] += 1
 
-    for _ in range(5):  # JIT compilation
-        step()
+    for a in actions[:5]:  # JIT compilation
+        step(a)
     version = getattr(crazyflow, "__version__", "0.4")
-    return f"crazyflow {version} (JAX {jax.__version__}, CPU), FigureEightEnv", timed(
-        step, seconds, n
-    )
+    what = f"crazyflow {version} (JAX {jax.__version__}, CPU), FigureEightEnv"
+    return what, rate(step, actions, seconds)[0]
 
 
 def genesis_rate(n: int, seconds: float) -> tuple[str, float]:
@@ -76,18 +63,15 @@ def genesis_rate(n: int, seconds: float) -> tuple[str, float]:
     g = torch.Generator().manual_seed(0)
     # Around the cf2x hover rpm (~14,468), as the paper's env maps its actions.
     rpms = [14468.0 * (1.0 + 0.8 * (torch.rand(n, 4, generator=g) - 0.5)) for _ in range(16)]
-    i = [0]
 
-    def step():
-        drone.set_propellers_rpm(rpms[i[0] % len(rpms)])
+    def step(rpm):
+        drone.set_propellers_rpm(rpm)
         scene.step()
-        i[0] += 1
 
-    for _ in range(5):  # kernel compilation
-        step()
-    return f"Genesis {gs.__version__} (CPU backend, torch {torch.__version__})", timed(
-        step, seconds, n
-    )
+    for rpm in rpms[:5]:  # kernel compilation
+        step(rpm)
+    what = f"Genesis {gs.__version__} (CPU backend, torch {torch.__version__})"
+    return what, rate(step, rpms, seconds)[0]
 
 
 def main() -> None:
