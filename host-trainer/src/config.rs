@@ -224,6 +224,18 @@ fn default_min_learning_rate() -> f64 {
     1e-5
 }
 
+fn is_zero(v: &f32) -> bool {
+    *v == 0.0
+}
+
+fn default_max_learning_rate() -> f64 {
+    1e-2
+}
+
+fn is_default_max_learning_rate(v: &f64) -> bool {
+    *v == default_max_learning_rate()
+}
+
 fn is_default_min_learning_rate(v: &f64) -> bool {
     *v == default_min_learning_rate()
 }
@@ -261,6 +273,11 @@ pub struct EnvSection {
     /// Share of respawns at the paper's stage-1 spawn whatever `spawn` is. Default 0.
     #[serde(default)]
     pub stage1_fraction: f32,
+    /// Share of respawns from a state after one of the env's own recent gate passes
+    /// (`sitl::env::EnvConfig::replay_fraction`). Paper: 0. Default 0 (left out of the
+    /// canonical TOML at 0, so older configs keep their hash).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub replay_fraction: f32,
 }
 
 /// PPO hyper-parameters (docs/DESIGN.md "Learning"; the defaults are RSL-RL's and the paper's
@@ -298,6 +315,19 @@ pub struct PpoConfig {
         skip_serializing_if = "is_default_min_learning_rate"
     )]
     pub min_learning_rate: f64,
+    /// Ceiling of the adaptive learning rate. Paper (RSL-RL): 1e-2. Default 1e-2 (left out
+    /// of the canonical TOML at its default, as `min_learning_rate`).
+    #[serde(
+        default = "default_max_learning_rate",
+        skip_serializing_if = "is_default_max_learning_rate"
+    )]
+    pub max_learning_rate: f64,
+    /// Ceiling of the action standard deviation: after every Adam step each log-σ is
+    /// clamped to ln(this). With actions clipped to their range, σ beyond it costs the
+    /// policy nothing the surrogate can see, so the entropy bonus alone grows it. Paper:
+    /// none. Default none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_std: Option<f32>,
     /// A fixed critic learning rate instead of the actor's adaptive one. Paper: none (one
     /// rate). Default none.
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -262,6 +262,14 @@ impl PolicyNet for Actor {
         self.mlp = self.mlp.with_output_bias(action);
         self
     }
+
+    fn with_std_at_most(mut self, max_std: f32) -> Self {
+        let ln_max = max_std.ln();
+        self.log_std = self
+            .log_std
+            .map(|t| t.clamp_max(ln_max).detach().require_grad());
+        self
+    }
 }
 
 impl Critic {

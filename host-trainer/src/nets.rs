@@ -52,6 +52,9 @@ pub trait PolicyNet: PpoNet + Sized {
     /// of an all-zero hidden layer (e.g. the hover action, so that the first rollouts hover
     /// instead of falling).
     fn with_output_bias(self, action: f32) -> Self;
+    /// The same actor with every σ clamped to at most `max_std`, the parameter keeping its
+    /// identity (and so its Adam state).
+    fn with_std_at_most(self, max_std: f32) -> Self;
 }
 
 /// A value function PPO trains.

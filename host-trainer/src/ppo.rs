@@ -335,7 +335,7 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             if kl > 2.0 * target {
                 self.learning_rate = (self.learning_rate / 1.5).max(p.min_learning_rate);
             } else if kl < target / 2.0 && kl > 0.0 {
-                self.learning_rate = (self.learning_rate * 1.5).min(1e-2);
+                self.learning_rate = (self.learning_rate * 1.5).min(p.max_learning_rate);
             }
         }
         let max = f64::from(p.max_grad_norm);
@@ -345,7 +345,11 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             scale(&self.critic, &mut critic_grads, factor);
         }
         let lr = self.learning_rate;
-        self.actor = self.actor_optim.step(lr, self.actor.clone(), actor_grads);
+        let actor = self.actor_optim.step(lr, self.actor.clone(), actor_grads);
+        self.actor = match p.max_std {
+            Some(max_std) => actor.with_std_at_most(max_std),
+            None => actor,
+        };
         let critic_lr = p.critic_learning_rate.unwrap_or(lr);
         self.critic = self
             .critic_optim

@@ -426,6 +426,14 @@ impl PolicyNet for RecurrentActor {
         }
     }
 
+    fn with_std_at_most(mut self, max_std: f32) -> Self {
+        let ln_max = max_std.ln();
+        self.log_std = self
+            .log_std
+            .map(|t| t.clamp_max(ln_max).detach().require_grad());
+        self
+    }
+
     fn log_std(&self) -> Tensor<1> {
         self.log_std.val()
     }

@@ -64,6 +64,7 @@ impl TrainConfig {
             random_initial_episode_length: self.env.random_initial_episode_length,
             spawn_speed_mps: self.env.spawn_speed_mps,
             stage1_fraction: self.env.stage1_fraction,
+            replay_fraction: self.env.replay_fraction,
             reward: self.reward,
             observation: self.observation_spec(),
             seed,

@@ -27,6 +27,8 @@ fn params() -> PpoConfig {
         desired_kl: None,
         max_grad_norm: 1.0,
         min_learning_rate: 1e-5,
+        max_learning_rate: 1e-2,
+        max_std: None,
         critic_learning_rate: None,
         init_std: 0.5,
         init_hover: false,
@@ -245,4 +247,61 @@ fn a_nan_minibatch_changes_nothing() {
     assert_eq!(s.skipped, 1);
     assert_eq!(learner.actor.payload(), before);
     assert!(learner.actor.payload().iter().all(|w| w.is_finite()));
+}
+
+/// `max_std`: a large entropy bonus drives σ up; with the ceiling every σ stops at it after
+/// each step (the log-σ parameter keeps its id, so Adam's moments follow it), without it σ
+/// passes it.
+#[test]
+fn the_std_ceiling_holds_against_the_entropy_bonus() {
+    let device = Device::flex().autodiff();
+    let arch = Architecture::table1(TableRow::A);
+    let mut r = ChaCha8Rng::seed_from_u64(5);
+    let n = 256;
+    let obs: Vec<f32> = (0..n * 17).map(|_| r.random_range(-1.0..1.0)).collect();
+    let run = |max_std: Option<f32>, steps: usize| -> (Vec<f32>, Vec<f32>) {
+        let mut rng = init_rng(4);
+        let actor = Actor::fresh(&arch, 0.5, &mut rng, &device);
+        let critic = Critic::fresh(&arch, &mut rng, &device);
+        let mut learner = Learner::new(actor, critic, 1e-2, device.clone());
+        let mean = values(learner.actor.mean(Tensor::from_data(
+            TensorData::new(obs.clone(), [n, 17]),
+            &device,
+        )));
+        let std = [0.5f32; 4];
+        let old_log_prob = mean
+            .chunks_exact(4)
+            .map(|m| gaussian_log_prob(m, m, &std))
+            .collect();
+        let batch = Batch {
+            obs_dim: 17,
+            obs: obs.clone(),
+            actions: mean.clone(),
+            old_log_prob,
+            old_mean: mean.clone(),
+            old_std: std,
+            old_values: vec![0.0; n],
+            returns: vec![0.0; n],
+            advantages: vec![0.0; n],
+            sequence: None,
+        };
+        let p = PpoConfig {
+            entropy_coef: 1.0,
+            learning_rate: 1e-2,
+            max_std,
+            ..params()
+        };
+        let idx: Vec<usize> = (0..n).collect();
+        let mut seen = Vec::new();
+        for _ in 0..steps {
+            learner.train_minibatch(&batch, &idx, &p);
+            seen.push(learner.actor.std().into_iter().fold(0.0, f32::max));
+        }
+        (learner.actor.std(), seen)
+    };
+    let (free, _) = run(None, 30);
+    assert!(free.iter().all(|s| *s > 0.6), "no ceiling: σ {free:?}");
+    let (capped, seen) = run(Some(0.6), 30);
+    assert!(seen.iter().all(|s| *s <= 0.6 + 1e-6), "{seen:?}");
+    assert!(capped.iter().all(|s| (s - 0.6).abs() < 1e-5), "{capped:?}");
 }

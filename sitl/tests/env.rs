@@ -495,3 +495,53 @@ fn episode_steps_set_from_outside_move_the_time_outs() {
     assert_eq!(env.timeouts(), &[false, true, false]);
     assert_eq!(env.episode_steps(), vec![1, 0, 9]);
 }
+
+/// `replay_fraction = 1`: after a crash the env restarts from the state it flew through
+/// right after its (only) gate pass, previous action included: the observation after the
+/// crash equals the one after the pass. Without a pass to replay, the spawn rule's own.
+#[test]
+fn a_replayed_spawn_is_the_state_after_a_gate_pass() {
+    let mut env = VecEnv::time_trial(EnvConfig {
+        replay_fraction: 1.0,
+        ..config(1)
+    });
+    let mut pilot = BaselineController::new(
+        sitl::pilot::baseline_config_for(&Preset::paper()),
+        Track::figure_eight(),
+    );
+    let world = World::figure_eight(Preset::paper(), CrashRules::STAGE1);
+    let mut twin = [Drone::spawned(stage1_spawn())];
+    let map = ActionMap::PAPER;
+    let after_pass = loop {
+        let (MotorCommand { rpm }, _) = pilot.step(&twin[0].body.state);
+        let a = rpm.map(|r| map.action_for_rpm(r).clamp(-1.0, 1.0));
+        env.step(&a).unwrap();
+        world.step(&mut twin, &[map.command(&a)]);
+        assert!(!env.dones()[0], "the baseline crashed before g0");
+        if env.records()[0].gate_passed {
+            break env.observations().to_vec();
+        }
+    };
+    // Motors off until the ground ends the episode; the replay restarts after g0's pass.
+    let off = [-1.0f32; 4];
+    let mut steps = 0;
+    while !env.dones()[0] {
+        env.step(&off).unwrap();
+        assert!(!env.records()[0].gate_passed);
+        steps += 1;
+        assert!(steps < 1000, "no crash with the motors off");
+    }
+    assert!(env.records()[0].crashed);
+    assert_eq!(env.observations(), after_pass.as_slice());
+
+    // A fresh env has no pass: its first crash respawns at the stage-1 spawn.
+    let mut fresh = VecEnv::time_trial(EnvConfig {
+        replay_fraction: 1.0,
+        ..config(1)
+    });
+    let start = fresh.observations().to_vec();
+    while !fresh.dones()[0] {
+        fresh.step(&off).unwrap();
+    }
+    assert_eq!(fresh.observations(), start.as_slice());
+}

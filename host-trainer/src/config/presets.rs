@@ -4,7 +4,8 @@
 
 use super::{
     EnvSection, PpoConfig, RunConfig, TrainConfig, WarmStart, default_eval_every,
-    default_eval_races, default_min_learning_rate, default_velocity_scale, one,
+    default_eval_races, default_max_learning_rate, default_min_learning_rate,
+    default_velocity_scale, one,
 };
 use sitl::env::RewardWeights;
 
@@ -56,6 +57,7 @@ impl TrainConfig {
                 velocity_scale_mps: 12.0,
                 spawn_speed_mps: 8.0,
                 stage1_fraction: 0.2,
+                replay_fraction: 0.0,
                 ..EnvSection::default()
             },
             ppo: PpoConfig {
@@ -106,6 +108,7 @@ impl Default for EnvSection {
             velocity_scale_mps: default_velocity_scale(),
             spawn_speed_mps: 0.0,
             stage1_fraction: 0.0,
+            replay_fraction: 0.0,
         }
     }
 }
@@ -128,6 +131,8 @@ impl Default for PpoConfig {
             desired_kl: Some(0.01),
             max_grad_norm: 1.0,
             min_learning_rate: default_min_learning_rate(),
+            max_learning_rate: default_max_learning_rate(),
+            max_std: None,
             critic_learning_rate: None,
             init_std: 1.0,
             init_hover: false,

@@ -125,6 +125,9 @@ fn env_ranges(c: &TrainConfig) -> Result<(), ConfigError> {
     if !(0.0..=1.0).contains(&c.env.stage1_fraction) {
         return bad("env.stage1_fraction must be in [0, 1]");
     }
+    if !(0.0..=1.0).contains(&c.env.replay_fraction) {
+        return bad("env.replay_fraction must be in [0, 1]");
+    }
     if !(0.0..=20.0).contains(&c.env.spawn_speed_mps) {
         return bad("env.spawn_speed_mps must be in [0, 20]");
     }
@@ -161,6 +164,14 @@ fn ppo(c: &TrainConfig) -> Result<(), ConfigError> {
     }
     if !(p.min_learning_rate > 0.0 && p.min_learning_rate <= p.learning_rate) {
         return bad("ppo.min_learning_rate must be in (0, learning_rate]");
+    }
+    if !(p.max_learning_rate >= p.learning_rate && p.max_learning_rate.is_finite()) {
+        return bad("ppo.max_learning_rate must be finite and at least learning_rate");
+    }
+    if let Some(s) = p.max_std {
+        if !(s > 0.0 && s.is_finite() && s >= p.init_std) {
+            return bad("ppo.max_std must be finite, positive and at least init_std");
+        }
     }
     if p.critic_learning_rate
         .is_some_and(|r| !(r.is_finite() && r > 0.0))

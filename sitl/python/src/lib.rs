@@ -131,7 +131,7 @@ impl RustVecEnv {
     #[new]
     #[pyo3(signature = (*, task, num_envs, preset, seed, spawn, episode_s,
         random_initial_episode_length, opponent, competition, competition_weight, row,
-        velocity_scale_mps, spawn_speed_mps, stage1_fraction))]
+        velocity_scale_mps, spawn_speed_mps, stage1_fraction, replay_fraction=0.0))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         task: &str,
@@ -148,6 +148,7 @@ impl RustVecEnv {
         velocity_scale_mps: f32,
         spawn_speed_mps: f32,
         stage1_fraction: f32,
+        replay_fraction: f32,
     ) -> PyResult<Self> {
         let race = match task {
             "time_trial" => false,
@@ -199,6 +200,11 @@ impl RustVecEnv {
                 "stage1_fraction {stage1_fraction}: expected a share in [0, 1]"
             )));
         }
+        if !(0.0..=1.0).contains(&replay_fraction) {
+            return Err(PyValueError::new_err(format!(
+                "replay_fraction {replay_fraction}: expected a share in [0, 1]"
+            )));
+        }
         let row = match row {
             None if race => TableRow::G,
             None => TableRow::A,
@@ -248,6 +254,7 @@ impl RustVecEnv {
             spawn,
             spawn_speed_mps,
             stage1_fraction,
+            replay_fraction,
             episode_s,
             random_initial_episode_length,
             observation,

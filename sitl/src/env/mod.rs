@@ -57,6 +57,12 @@ pub struct EnvConfig {
     /// Share of respawns at the paper's fixed stage-1 spawn (at rest) whatever `spawn` is:
     /// the start the referee evaluates stage 1 from. 0 for `spawn` alone.
     pub stage1_fraction: f32,
+    /// Share of time-trial respawns that restart from a state the env itself flew through
+    /// right after one of its recent gate passes (its position, attitude, velocity, rates,
+    /// propeller speeds, next target and previous action), when it has one: Song et al.
+    /// 2023's "states from successful gate passes", so the policy trains where its own
+    /// flight takes it, at its own speeds. 0 for none (the paper's).
+    pub replay_fraction: f32,
     /// Episode length (s) before a time-out. Paper stage 1: 15.
     pub episode_s: f32,
     /// Start every env at a random point of its first episode (RSL-RL's
@@ -133,6 +139,7 @@ impl EnvConfig {
             spawn: SpawnMode::AlongTrack,
             spawn_speed_mps: 0.0,
             stage1_fraction: 0.0,
+            replay_fraction: 0.0,
             episode_s: 15.0,
             random_initial_episode_length: true,
             reward: RewardWeights::default(),
@@ -196,6 +203,32 @@ struct Slot {
     spawn_segment: [u64; 2],
     rng: ChaCha8Rng,
     stats: EnvStats,
+    /// The ego's states after its last gate passes (for `replay_fraction`).
+    passes: PassReplay,
+}
+
+/// States after the last [`PassReplay::LEN`] gate passes of one env, oldest overwritten.
+#[derive(Clone, Debug, Default)]
+struct PassReplay {
+    states: [Option<(Drone, [f32; ACTION_DIM])>; PassReplay::LEN],
+    next: usize,
+}
+
+impl PassReplay {
+    const LEN: usize = 8;
+
+    fn record(&mut self, drone: Drone, previous_action: [f32; ACTION_DIM]) {
+        self.states[self.next] = Some((drone, previous_action));
+        self.next = (self.next + 1) % Self::LEN;
+    }
+
+    fn draw(&self, rng: &mut ChaCha8Rng) -> Option<(Drone, [f32; ACTION_DIM])> {
+        let filled = self.states.iter().filter(|s| s.is_some()).count();
+        if filled == 0 {
+            return None;
+        }
+        self.states[rng.random_range(0..filled)]
+    }
 }
 
 /// Many stage-1 or stage-2 worlds with their observations, rewards and episode ends.
@@ -326,6 +359,7 @@ impl VecEnv {
                 spawn_segment: [0; 2],
                 rng,
                 stats: EnvStats::default(),
+                passes: PassReplay::default(),
             };
             respawn(&env.world, &env.progress, &env.spawn_rule(), &mut slot);
             slot.steps = steps;
@@ -355,6 +389,7 @@ impl VecEnv {
             },
             max_speed_mps: self.config.spawn_speed_mps,
             stage1_fraction: self.config.stage1_fraction,
+            replay_fraction: self.config.replay_fraction,
             race: self.race.is_some(),
         }
     }
@@ -487,6 +522,9 @@ impl VecEnv {
                         });
                         let rec = step_slot(world, progress, map, reward, max_steps, slot, &a);
                         let ended = rec.crashed || rec.timed_out;
+                        if rec.gate_passed && !ended && rule.replay_fraction > 0.0 {
+                            slot.passes.record(slot.drones[0], slot.previous_action);
+                        }
                         if ended {
                             let row = i * obs_dim..(i + 1) * obs_dim;
                             observe(world, spec, slot, &mut last[row]);
@@ -621,6 +659,7 @@ struct SpawnRule {
     mode: SpawnMode,
     max_speed_mps: f32,
     stage1_fraction: f32,
+    replay_fraction: f32,
     race: bool,
 }
 
@@ -628,8 +667,18 @@ struct SpawnRule {
 /// for both drones, the opponent's controller reset to their gate. In a time trial, the
 /// stage-1 spawn with probability `stage1_fraction`, otherwise `mode`'s, moving along its
 /// heading at a speed drawn from [0, `max_speed_mps`] when that is positive. The previous
-/// action zeroed.
+/// action zeroed. Otherwise, with probability `replay_fraction`, the state after one of the
+/// env's recent gate passes, with that step's previous action.
 fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut Slot) {
+    if !rule.race && rule.replay_fraction > 0.0 && slot.rng.random::<f32>() < rule.replay_fraction {
+        if let Some((drone, previous_action)) = slot.passes.draw(&mut slot.rng) {
+            slot.drones[0] = drone;
+            slot.spawn_segment[0] = progress.spawn_segment(drone.progress.target);
+            slot.previous_action = previous_action;
+            slot.steps = 0;
+            return;
+        }
+    }
     let line = progress.line();
     let stage1 =
         !rule.race && rule.stage1_fraction > 0.0 && slot.rng.random::<f32>() < rule.stage1_fraction;
