@@ -5,7 +5,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::batch::{Batch, gae, gaussian_log_prob};
-use host_trainer::config::PpoConfig;
+use host_trainer::config::{PpoConfig, UpdateKind};
 use host_trainer::model::{Actor, Critic, values};
 use host_trainer::nets::{PolicyNet, ValueNet};
 use host_trainer::ppo::Learner;
@@ -30,6 +30,7 @@ fn params() -> PpoConfig {
         critic_learning_rate: None,
         init_std: 0.5,
         init_hover: false,
+        update: UpdateKind::Fused,
     }
 }
 

@@ -3,7 +3,7 @@
 //! [`TrainConfig::ours`] (`host-trainer/tests/config.rs` holds each equal to its TOML file).
 
 use super::{
-    EnvSection, PpoConfig, RunConfig, TrainConfig, WarmStart, default_eval_every,
+    EnvSection, PpoConfig, RunConfig, TrainConfig, UpdateKind, WarmStart, default_eval_every,
     default_eval_races, default_min_learning_rate, default_velocity_scale, one,
 };
 use sitl::env::RewardWeights;
@@ -131,6 +131,7 @@ impl Default for PpoConfig {
             critic_learning_rate: None,
             init_std: 1.0,
             init_hover: false,
+            update: UpdateKind::Fused,
         }
     }
 }
