@@ -332,7 +332,17 @@ impl Side {
                 for row in output.chunks_exact_mut(fo) {
                     row.copy_from_slice(bias);
                 }
-                gemm(m, fi, fo, &input[..m * fi], (fi, 1), w, (fo, 1), 1.0, output);
+                gemm(
+                    m,
+                    fi,
+                    fo,
+                    &input[..m * fi],
+                    (fi, 1),
+                    w,
+                    (fo, 1),
+                    1.0,
+                    output,
+                );
                 if l + 1 < layers {
                     tanh_in_place(output);
                 }
@@ -512,8 +522,8 @@ fn actor_pass(side: &mut Side, b: &Batch, idx: &[usize], p: &PpoConfig) -> Actor
             }
         }
     });
-    for k in 0..ACTION_DIM {
-        side.grad[ls_at + k] = d_log_std[k] as f32 - p.entropy_coef;
+    for (g, d) in side.grad[ls_at..].iter_mut().zip(d_log_std) {
+        *g = d as f32 - p.entropy_coef;
     }
     let n = idx.len().max(1) as f64;
     ActorStats {
@@ -634,7 +644,9 @@ impl FusedLearner {
                 self.critic.grad.iter_mut().for_each(|g| *g *= factor);
             }
             let critic_lr = p.critic_learning_rate.unwrap_or(*learning_rate);
-            let Side { net, grad, adam, .. } = &mut self.critic;
+            let Side {
+                net, grad, adam, ..
+            } = &mut self.critic;
             adam.step(&mut net.params, grad, critic_lr);
             return UpdateStats {
                 value_loss,
@@ -654,10 +666,7 @@ impl FusedLearner {
                 (a, c)
             })
         } else {
-            (
-                actor_pass(actor, b, idx, p),
-                critic_pass(critic, b, idx, p),
-            )
+            (actor_pass(actor, b, idx, p), critic_pass(critic, b, idx, p))
         };
         let norm = (squared(&actor.grad) + squared(&critic.grad)).sqrt();
         if !(norm.is_finite()
@@ -676,7 +685,9 @@ impl FusedLearner {
         let lr = *learning_rate;
         actor.adam.step(&mut actor.net.params, &actor.grad, lr);
         let critic_lr = p.critic_learning_rate.unwrap_or(lr);
-        critic.adam.step(&mut critic.net.params, &critic.grad, critic_lr);
+        critic
+            .adam
+            .step(&mut critic.net.params, &critic.grad, critic_lr);
         UpdateStats {
             surrogate_loss: a.surrogate,
             value_loss,

@@ -370,7 +370,8 @@ impl Learner<Actor, Critic> {
     /// modules once, every minibatch step taken on them, the result copied back.
     fn update_fused(&mut self, batch: &Batch, p: &PpoConfig, rng: &mut ChaCha8Rng) -> UpdateStats {
         let mut fused = FusedLearner::new(&self.actor, &self.critic, self.fused_optim.take());
-        let (lr, train_actor, parallel) = (&mut self.learning_rate, self.train_actor, self.parallel);
+        let (lr, train_actor, parallel) =
+            (&mut self.learning_rate, self.train_actor, self.parallel);
         let stats = epochs(batch.len(), p, rng, |mb| {
             fused.train_minibatch(batch, mb, p, lr, train_actor, parallel)
         });
@@ -385,9 +386,21 @@ impl Learner<Actor, Critic> {
     /// [`Learner::train_minibatch`] in the fused update (copying the parameters and Adam's
     /// state in and out around the one step: for tests and benchmarks; [`Learner::update`]
     /// copies once per update).
-    pub fn train_minibatch_fused(&mut self, b: &Batch, idx: &[usize], p: &PpoConfig) -> UpdateStats {
+    pub fn train_minibatch_fused(
+        &mut self,
+        b: &Batch,
+        idx: &[usize],
+        p: &PpoConfig,
+    ) -> UpdateStats {
         let mut fused = FusedLearner::new(&self.actor, &self.critic, self.fused_optim.take());
-        let s = fused.train_minibatch(b, idx, p, &mut self.learning_rate, self.train_actor, self.parallel);
+        let s = fused.train_minibatch(
+            b,
+            idx,
+            p,
+            &mut self.learning_rate,
+            self.train_actor,
+            self.parallel,
+        );
         fused.write_to(&mut self.actor, &mut self.critic);
         self.fused_optim = Some(fused.into_optim());
         s

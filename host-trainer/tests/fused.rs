@@ -263,7 +263,10 @@ fn a_fused_update_follows_burns() {
     let sf = fused.update(&b, &pf, &mut ChaCha8Rng::seed_from_u64(1));
     let sb = burn.update(&b, &pb, &mut ChaCha8Rng::seed_from_u64(1));
     assert!(burn.fused_optim.is_none());
-    let optim = fused.fused_optim.as_ref().expect("the fused update keeps Adam's state");
+    let optim = fused
+        .fused_optim
+        .as_ref()
+        .expect("the fused update keeps Adam's state");
     assert_eq!((optim.actor.time, optim.critic.time), (4, 4));
     assert_stats_close(&sf, &sb);
     assert_networks_close(&fused, &burn, 2e-5);
