@@ -295,6 +295,21 @@ impl Side {
         }
     }
 
+    /// The outputs for every row of `obs` (row-major, the network's input width), chunk by
+    /// chunk.
+    fn outputs(&mut self, obs: &[f32]) -> Vec<f32> {
+        let Self { net, ws, .. } = self;
+        let (n_in, out) = (net.sizes[0], net.sizes[net.layers()]);
+        let mut y = Vec::with_capacity(obs.len() / n_in * out);
+        for rows in obs.chunks(CHUNK * n_in) {
+            let m = rows.len() / n_in;
+            ws.x[..m * n_in].copy_from_slice(&rows[..m * n_in]);
+            forward(net, ws, m);
+            y.extend_from_slice(&ws.y[..m * out]);
+        }
+        y
+    }
+
     /// Forward and backward over the samples `idx` of `b`, chunk by chunk: `head` gets a
     /// chunk's sample indices and outputs `[m, out]` and writes d loss / d outputs. Leaves
     /// the MLP's gradients in `grad` (the tail past the MLP is the caller's).
@@ -315,38 +330,7 @@ impl Side {
             for (r, &i) in rows.iter().enumerate() {
                 ws.x[r * n_in..(r + 1) * n_in].copy_from_slice(&b.obs[i * n_in..(i + 1) * n_in]);
             }
-            // Forward.
-            for l in 0..layers {
-                let (fi, fo) = (sizes[l], sizes[l + 1]);
-                let (wo, bo) = net.offsets[l];
-                let w = &net.params[wo..wo + fi * fo];
-                let bias = &net.params[bo..bo + fo];
-                let (before, after) = ws.hidden.split_at_mut(l.min(layers - 1));
-                let input: &[f32] = if l == 0 { &ws.x } else { &before[l - 1] };
-                let output: &mut [f32] = if l + 1 < layers {
-                    &mut after[0]
-                } else {
-                    &mut ws.y
-                };
-                let output = &mut output[..m * fo];
-                for row in output.chunks_exact_mut(fo) {
-                    row.copy_from_slice(bias);
-                }
-                gemm(
-                    m,
-                    fi,
-                    fo,
-                    &input[..m * fi],
-                    (fi, 1),
-                    w,
-                    (fo, 1),
-                    1.0,
-                    output,
-                );
-                if l + 1 < layers {
-                    tanh_in_place(output);
-                }
-            }
+            forward(net, ws, m);
             // Loss head: d loss / d outputs into d_a.
             head(rows, &ws.y[..m * out], &mut ws.d_a[..m * out]);
             // Backward.
@@ -382,6 +366,44 @@ impl Side {
                     std::mem::swap(&mut ws.d_a, &mut ws.d_b);
                 }
             }
+        }
+    }
+}
+
+/// The forward pass of the first `m` rows of `ws.x` through `net`: hidden activations into
+/// `ws.hidden`, outputs into `ws.y`.
+fn forward(net: &FlatNet, ws: &mut Workspace, m: usize) {
+    let sizes = &net.sizes;
+    let layers = net.layers();
+    for l in 0..layers {
+        let (fi, fo) = (sizes[l], sizes[l + 1]);
+        let (wo, bo) = net.offsets[l];
+        let w = &net.params[wo..wo + fi * fo];
+        let bias = &net.params[bo..bo + fo];
+        let (before, after) = ws.hidden.split_at_mut(l.min(layers - 1));
+        let input: &[f32] = if l == 0 { &ws.x } else { &before[l - 1] };
+        let output: &mut [f32] = if l + 1 < layers {
+            &mut after[0]
+        } else {
+            &mut ws.y
+        };
+        let output = &mut output[..m * fo];
+        for row in output.chunks_exact_mut(fo) {
+            row.copy_from_slice(bias);
+        }
+        gemm(
+            m,
+            fi,
+            fo,
+            &input[..m * fi],
+            (fi, 1),
+            w,
+            (fo, 1),
+            1.0,
+            output,
+        );
+        if l + 1 < layers {
+            tanh_in_place(output);
         }
     }
 }
@@ -605,6 +627,25 @@ impl FusedLearner {
         }
     }
 
+    /// The actor's means for every row of `obs`, the critic's values for them and for every
+    /// row of `last_obs` (the observations after the window): what PPO's batch needs, the
+    /// two networks on two threads.
+    pub fn rollout_outputs(
+        &mut self,
+        obs: &[f32],
+        last_obs: &[f32],
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let (actor, critic) = (&mut self.actor, &mut self.critic);
+        std::thread::scope(|s| {
+            let critic_job = s.spawn(|| (critic.outputs(obs), critic.outputs(last_obs)));
+            let mean = actor.outputs(obs);
+            let (values, last) = critic_job
+                .join()
+                .unwrap_or_else(|e| std::panic::resume_unwind(e));
+            (mean, values, last)
+        })
+    }
+
     /// The gradients of the actor's loss (surrogate − entropy bonus) and of the critic's
     /// (`value_coef` × value loss) on the samples `idx` of `b`, flat in `burn`'s order (for
     /// the parity tests; no step is taken).
@@ -718,6 +759,21 @@ mod tests {
         }
         assert!(worst_exp < 5e-7, "exp relative error {worst_exp}");
         assert!(worst_tanh < 3e-7, "tanh absolute error {worst_tanh}");
+    }
+
+    #[test]
+    fn fused_optim_survives_its_safetensors() {
+        let m = |n: usize, x: f32| AdamMoments {
+            moment_1: (0..n).map(|i| i as f32 * x).collect(),
+            moment_2: (0..n).map(|i| i as f32 * x * x).collect(),
+            time: n as u32,
+        };
+        let o = FusedOptim {
+            actor: m(7, 0.5),
+            critic: m(3, -2.0),
+        };
+        let back = FusedOptim::from_safetensors(&o.to_safetensors().unwrap()).unwrap();
+        assert_eq!(back, o);
     }
 
     #[test]

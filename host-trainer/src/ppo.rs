@@ -153,9 +153,15 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             advantages: Vec::new(),
             sequence: Self::RECURRENT.then(|| Sequences::of(r)),
         };
-        let (old_mean, _, _) = actor.rollout_outputs(&batch, None, &device);
-        let (old_values, last_values, critic_next) =
-            critic.rollout_outputs(&batch, Some(&r.last_obs), &device);
+        let (old_mean, old_values, last_values, critic_next) = match self.fused_outputs(r, p) {
+            Some((mean, values, last)) => (mean, values, last, Vec::new()),
+            None => {
+                let (mean, _, _) = actor.rollout_outputs(&batch, None, &device);
+                let (values, last, next) =
+                    critic.rollout_outputs(&batch, Some(&r.last_obs), &device);
+                (mean, values, last, next)
+            }
+        };
         let std = actor.std();
         let old_std: [f32; ACTION_DIM] =
             core::array::from_fn(|k| std.get(k).copied().unwrap_or(1.0));
@@ -208,6 +214,18 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             advantages,
             ..batch
         }
+    }
+
+    /// [`Learner::prepare`]'s means, values and bootstrap values from the fused forward pass
+    /// ([`FusedLearner::rollout_outputs`]) where the update is fused, else `None`.
+    fn fused_outputs(&self, r: &Rollout, p: &PpoConfig) -> Option<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+        if Self::RECURRENT || p.update != UpdateKind::Fused {
+            return None;
+        }
+        let this: &dyn std::any::Any = self;
+        let mlp = this.downcast_ref::<Learner<Actor, Critic>>()?;
+        let mut fused = FusedLearner::new(&mlp.actor, &mlp.critic, None);
+        Some(fused.rollout_outputs(&r.obs, &r.last_obs))
     }
 
     /// The gradient of the actor's loss (clipped surrogate minus the entropy bonus) over all

@@ -271,3 +271,42 @@ fn a_fused_update_follows_burns() {
     assert_stats_close(&sf, &sb);
     assert_networks_close(&fused, &burn, 2e-5);
 }
+
+/// The batch built with the fused forward pass (`update = "fused"`) equals the one built
+/// with `burn`'s: old means and values, bootstrapped returns, normalised advantages.
+#[test]
+fn a_fused_prepare_equals_burns() {
+    let l = learner(13);
+    let (envs, steps) = (300, 7);
+    let mut r = ChaCha8Rng::seed_from_u64(6);
+    let mut rollout = host_trainer::rollout::Rollout::new(envs, 17);
+    let n = envs * steps;
+    rollout.obs = (0..n * 17).map(|_| r.random_range(-1.0..1.0)).collect();
+    rollout.actions = (0..n * 4).map(|_| r.random_range(-1.0..1.0)).collect();
+    rollout.rewards = (0..n).map(|_| r.random_range(-0.1..0.1)).collect();
+    rollout.dones = (0..n).map(|_| r.random_range(0.0..1.0) < 0.05).collect();
+    rollout.timeouts = rollout
+        .dones
+        .iter()
+        .map(|&d| d && r.random_range(0.0..1.0) < 0.5)
+        .collect();
+    rollout.last_obs = (0..envs * 17).map(|_| r.random_range(-1.0..1.0)).collect();
+    let fused = l.prepare(&rollout, &params());
+    let burn = l.prepare(
+        &rollout,
+        &PpoConfig {
+            update: UpdateKind::Burn,
+            ..params()
+        },
+    );
+    for (name, a, b) in [
+        ("old_mean", &fused.old_mean, &burn.old_mean),
+        ("old_values", &fused.old_values, &burn.old_values),
+        ("old_log_prob", &fused.old_log_prob, &burn.old_log_prob),
+        ("returns", &fused.returns, &burn.returns),
+        ("advantages", &fused.advantages, &burn.advantages),
+    ] {
+        let e = relative_error(a, b);
+        assert!(e < 1e-5, "{name}: relative error {e}");
+    }
+}
