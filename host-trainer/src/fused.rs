@@ -470,11 +470,45 @@ fn exp_approx(x: f32) -> f32 {
 }
 
 /// `tanh` over a slice: `1 − 2/(e^{2x} + 1)` (absolute error ~1e-7, the same size as
-/// `burn`'s `2σ(2x) − 1` of [`crate::model::fast_tanh`]).
+/// `burn`'s `2σ(2x) − 1` of [`crate::model::fast_tanh`]). The loop is compiled for AVX-512
+/// and for AVX2 besides the baseline (SSE2) and the widest the CPU has runs: the same
+/// operations in every lane (no FMA contraction), so the same numbers whichever runs. It
+/// was a fifth of a minibatch step on SSE2.
 fn tanh_in_place(v: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") {
+            // SAFETY: the CPU has AVX-512F (checked just above).
+            return unsafe { tanh_avx512(v) };
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2 (checked just above).
+            return unsafe { tanh_avx2(v) };
+        }
+    }
+    tanh_loop(v);
+}
+
+/// [`tanh_in_place`]'s loop, inlined into each target-feature copy.
+#[inline(always)]
+fn tanh_loop(v: &mut [f32]) {
     for x in v {
         *x = 1.0 - 2.0 / (exp_approx(2.0 * *x) + 1.0);
     }
+}
+
+/// [`tanh_loop`] compiled for AVX-512.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn tanh_avx512(v: &mut [f32]) {
+    tanh_loop(v);
+}
+
+/// [`tanh_loop`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn tanh_avx2(v: &mut [f32]) {
+    tanh_loop(v);
 }
 
 /// `d ← d · (1 − h²)`: the gradient through `h = tanh(z)`.
@@ -758,6 +792,12 @@ mod tests {
             worst_tanh = worst_tanh.max((t[0] - x.tanh()).abs());
         }
         assert!(worst_exp < 5e-7, "exp relative error {worst_exp}");
+        let xs: Vec<f32> = (-5000..5000).map(|i| i as f32 * 0.0031).collect();
+        let mut base = xs.clone();
+        tanh_loop(&mut base);
+        let mut dispatched = xs;
+        tanh_in_place(&mut dispatched);
+        assert_eq!(base, dispatched, "the vectorised tanh gives other numbers");
         assert!(worst_tanh < 3e-7, "tanh absolute error {worst_tanh}");
     }
 
