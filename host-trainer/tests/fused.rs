@@ -310,3 +310,24 @@ fn a_fused_prepare_equals_burns() {
         assert!(e < 1e-5, "{name}: relative error {e}");
     }
 }
+
+/// With the actor frozen (the critic's warm-up after a warm start) only the critic steps,
+/// as in `burn`'s update, and the learning rate stays.
+#[test]
+fn a_fused_critic_only_step_equals_burns() {
+    let (mut fused, mut burn) = (learner(17), learner(17));
+    fused.train_actor = false;
+    burn.train_actor = false;
+    let b = batch(&burn, 2048, 8);
+    let p = params();
+    let idx: Vec<usize> = (0..b.len()).collect();
+    for _ in 0..3 {
+        let sb = burn.train_minibatch(&b, &idx, &p);
+        let sf = fused.train_minibatch_fused(&b, &idx, &p);
+        assert_stats_close(&sf, &sb);
+        assert_eq!(sf.learning_rate, 1e-4);
+    }
+    assert_eq!(flat(&fused.actor), flat(&learner(17).actor));
+    assert_networks_close(&fused, &burn, 1e-5);
+    assert_ne!(flat(&fused.critic), flat(&learner(17).critic));
+}
