@@ -3,6 +3,9 @@
 //! - `ppo_update/minibatch_25600_{parallel,sequential}`: one minibatch step on 25,600
 //!   samples (forward, KL, clipped losses, backward, global clip, Adam) with the actor's and
 //!   the critic's passes on two threads or one after the other, in the same run;
+//! - `ppo_update/minibatch_102400_{burn,fused}`: one minibatch step at RSL-RL's minibatch
+//!   size (4,096 envs × 100 steps / 4) with `burn`'s autodiff and Adam, and with the fused
+//!   update ([`host_trainer::fused`]), both with the passes on two threads, in the same run;
 //! - `train_iteration/stage1`: one PPO iteration of `configs/stage1.toml` end to end
 //!   (rollout of 512 envs × 50 steps with the deployed network, then 5 epochs × 2
 //!   minibatches of 12,800), checkpoint load and save included.
@@ -13,6 +16,7 @@ use burn::tensor::Device;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::config::TrainConfig;
+use host_trainer::fused::FusedLearner;
 use host_trainer::model::{Actor, Critic};
 use host_trainer::nets::{PolicyNet, ValueNet};
 use host_trainer::ppo::Learner;
@@ -68,6 +72,19 @@ fn update(c: &mut Criterion) {
             b.iter(|| l.train_minibatch(&batch, &idx, &p))
         });
     }
+    // RSL-RL's minibatch: 102,400 samples.
+    let mut l = learner();
+    let batch = l.prepare(&rollout(1024, 100), &p);
+    let idx: Vec<usize> = (0..batch.len()).collect();
+    g.throughput(Throughput::Elements(idx.len() as u64));
+    g.bench_function("minibatch_102400_burn", |b| {
+        b.iter(|| l.train_minibatch(&batch, &idx, &p))
+    });
+    let mut fused = FusedLearner::new(&l.actor, &l.critic, None);
+    let mut lr = l.learning_rate;
+    g.bench_function("minibatch_102400_fused", |b| {
+        b.iter(|| fused.train_minibatch(&batch, &idx, &p, &mut lr, true, true))
+    });
     g.finish();
 }
 

@@ -339,6 +339,31 @@ pub struct PpoConfig {
     /// fall. Paper: false. Default false.
     #[serde(default)]
     pub init_hover: bool,
+    /// How the feed-forward networks (rows A-D) take their PPO steps: `"fused"`, the
+    /// hand-written CPU update of [`crate::fused`] (default), or `"burn"`, the same update on
+    /// `burn`'s autodiff (for comparison). Recurrent networks always use `burn`. (Left out of
+    /// the canonical TOML at its default, so configs written before it existed keep their
+    /// hash.)
+    #[serde(default, skip_serializing_if = "UpdateKind::is_default")]
+    pub update: UpdateKind,
+}
+
+/// Which implementation takes the PPO steps of the feed-forward networks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum UpdateKind {
+    /// The fused CPU update ([`crate::fused`]): the same math, several times faster.
+    #[default]
+    Fused,
+    /// `burn`'s autodiff and Adam.
+    Burn,
+}
+
+impl UpdateKind {
+    /// The default (for `skip_serializing_if`).
+    pub fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
 }
 
 /// Why a configuration could not be used.

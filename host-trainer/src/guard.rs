@@ -7,7 +7,7 @@
 use crate::config::{Guard, TrainConfig};
 use crate::error::TrainError;
 use crate::nets::{PolicyNet, ValueNet};
-use crate::ppo::{Learner, adam};
+use crate::ppo::Learner;
 use crate::rng::generator;
 use crate::rollout::{Rollout, collect_rollout};
 use firmware_core::policy::{Architecture, Policy};
@@ -95,7 +95,7 @@ pub(crate) fn guard_update<A: PolicyNet, C: ValueNet>(
     }
     learner.actor = A::from_payload(arch, old_w, old_std, &learner.device)
         .ok_or_else(|| TrainError::Export("guard: weights do not fit".into()))?;
-    learner.actor_optim = adam();
+    learner.reset_actor_optim();
     learner.learning_rate = (learner.learning_rate / 2.0).max(config.ppo.min_learning_rate);
     Ok((0.0, base, base))
 }

@@ -14,6 +14,7 @@
 //! | [`nets`] | the traits PPO needs of a network |
 //! | [`model`] | the feed-forward actor and critic (rows A-D) on `burn` |
 //! | [`recurrent`] | the LSTM actor and critic (rows E-G) with a fused cell |
+//! | [`fused`] | the feed-forward PPO minibatch step by hand: forward, loss, backward, clip, Adam |
 //! | [`grads`] | gradient norms, clipping and moving gradients between network copies |
 //! | [`guard`] | the optional line search of each update on the measured return |
 //! | [`imitation`] | DAgger: one round collector, the feed-forward and recurrent regressions |
@@ -32,6 +33,7 @@ pub mod config;
 pub mod error;
 pub mod evaluation;
 pub mod export;
+pub mod fused;
 pub mod grads;
 pub mod guard;
 pub mod imitation;

@@ -14,6 +14,11 @@
 //! matmuls at these sizes use one core, so this is what makes the second core work (measured
 //! in docs/PERFORMANCE.md).
 //!
+//! **The fused update.** For the feed-forward networks the minibatch steps run by default in
+//! [`crate::fused`], a hand-written CPU implementation of exactly this math (its parity with
+//! the `burn` passes below is tested in `host-trainer/tests/fused.rs`); `[ppo] update =
+//! "burn"` keeps them on `burn`. The `burn` modules stay the networks of record.
+//!
 //! Departures from RSL-RL, each documented in docs/TRAINING.md: a fresh minibatch permutation
 //! every epoch (RSL-RL draws one per update), a log-parameterised σ (RSL-RL's default stores σ
 //! itself, which can go negative).
@@ -26,7 +31,8 @@
 //! through time over `steps_per_env` steps).
 
 use crate::batch::{Batch, LN_2PI, Minibatch, Sequences, gae, gather, gaussian_log_prob, tensor2};
-use crate::config::PpoConfig;
+use crate::config::{PpoConfig, UpdateKind};
+use crate::fused::{FusedLearner, FusedOptim};
 use crate::grads::{flatten_gradients, scale, squared_norm};
 use crate::model::{Actor, Critic, values};
 use crate::nets::{PolicyNet, PpoNet};
@@ -61,6 +67,10 @@ pub struct Learner<A = Actor, C = Critic> {
     /// Update the actor (default). Off, only the critic learns (the critic warm-up after an
     /// imitation warm start) and the learning rate stays.
     pub train_actor: bool,
+    /// Adam's state of the fused update ([`crate::fused`]; feed-forward networks with
+    /// `[ppo] update = "fused"`), kept between updates; `None` until its first step. The
+    /// `burn` optimisers above hold the state of the `burn` update instead.
+    pub fused_optim: Option<FusedOptim>,
 }
 
 /// Adam as PyTorch's defaults (β 0.9/0.999, ε 1e-8), which RSL-RL uses.
@@ -109,6 +119,15 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             device,
             parallel: true,
             train_actor: true,
+            fused_optim: None,
+        }
+    }
+
+    /// Forgets the actor's Adam state (both updates'), as after a rejected update.
+    pub fn reset_actor_optim(&mut self) {
+        self.actor_optim = adam();
+        if let Some(o) = &mut self.fused_optim {
+            o.actor = crate::fused::AdamMoments::default();
         }
     }
 
@@ -134,9 +153,15 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             advantages: Vec::new(),
             sequence: Self::RECURRENT.then(|| Sequences::of(r)),
         };
-        let (old_mean, _, _) = actor.rollout_outputs(&batch, None, &device);
-        let (old_values, last_values, critic_next) =
-            critic.rollout_outputs(&batch, Some(&r.last_obs), &device);
+        let (old_mean, old_values, last_values, critic_next) = match self.fused_outputs(r, p) {
+            Some((mean, values, last)) => (mean, values, last, Vec::new()),
+            None => {
+                let (mean, _, _) = actor.rollout_outputs(&batch, None, &device);
+                let (values, last, next) =
+                    critic.rollout_outputs(&batch, Some(&r.last_obs), &device);
+                (mean, values, last, next)
+            }
+        };
         let std = actor.std();
         let old_std: [f32; ACTION_DIM] =
             core::array::from_fn(|k| std.get(k).copied().unwrap_or(1.0));
@@ -191,12 +216,31 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
         }
     }
 
+    /// [`Learner::prepare`]'s means, values and bootstrap values from the fused forward pass
+    /// ([`FusedLearner::rollout_outputs`]) where the update is fused, else `None`.
+    fn fused_outputs(&self, r: &Rollout, p: &PpoConfig) -> Option<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+        if Self::RECURRENT || p.update != UpdateKind::Fused {
+            return None;
+        }
+        let this: &dyn std::any::Any = self;
+        let mlp = this.downcast_ref::<Learner<Actor, Critic>>()?;
+        let mut fused = FusedLearner::new(&mlp.actor, &mlp.critic, None);
+        Some(fused.rollout_outputs(&r.obs, &r.last_obs))
+    }
+
     /// The gradient of the actor's loss (clipped surrogate minus the entropy bonus) over all
     /// of `batch` with the current networks, flattened: at the start of an update (ratio 1)
     /// it is the policy-gradient estimate the first Adam step follows. For measuring its
     /// signal-to-noise ratio across independent rollouts (`examples/gradient_snr.rs`).
     pub fn actor_gradient(&self, batch: &Batch, p: &PpoConfig) -> Vec<f32> {
         flatten_gradients(&self.actor, &self.actor_gradients(batch, p))
+    }
+
+    /// The gradient of the critic's loss (`value_coef` × clipped value loss) over all of
+    /// `batch`, flattened (for the fused update's parity tests).
+    pub fn critic_gradient(&self, batch: &Batch, p: &PpoConfig) -> Vec<f32> {
+        let (grads, _) = critic_pass(&self.critic, batch, &Minibatch::all(batch), p, &self.device);
+        flatten_gradients(&self.critic, &grads)
     }
 
     /// A learner with copies of the networks and fresh optimisers (for diagnostics that
@@ -216,43 +260,25 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
     }
 
     /// `epochs × minibatches` PPO steps on `batch`, minibatches drawn from `rng`: samples
-    /// for feed-forward networks, whole env windows for recurrent ones.
+    /// for feed-forward networks, whole env windows for recurrent ones. The feed-forward
+    /// networks take their steps in the fused update ([`crate::fused`]) unless `p.update`
+    /// is `"burn"`.
     pub fn update(&mut self, batch: &Batch, p: &PpoConfig, rng: &mut ChaCha8Rng) -> UpdateStats {
+        if !Self::RECURRENT && p.update == UpdateKind::Fused {
+            let this: &mut dyn std::any::Any = self;
+            if let Some(mlp) = this.downcast_mut::<Learner<Actor, Critic>>() {
+                return mlp.update_fused(batch, p, rng);
+            }
+        }
         let n = match &batch.sequence {
             Some(s) if Self::RECURRENT => s.num_envs,
             _ => batch.len(),
         };
-        let size = n / p.minibatches.max(1);
-        let mut stats = UpdateStats::default();
-        let mut count = 0.0;
-        let mut order: Vec<usize> = (0..n).collect();
-        for _ in 0..p.epochs {
-            order.shuffle(rng);
-            for mb in order.chunks_exact(size.max(1)) {
-                let s = self.train_minibatch(batch, mb, p);
-                if s.skipped > 0 {
-                    stats.skipped += s.skipped;
-                    continue;
-                }
-                stats.surrogate_loss += s.surrogate_loss;
-                stats.value_loss += s.value_loss;
-                stats.entropy += s.entropy;
-                stats.kl += s.kl;
-                stats.clip_fraction += s.clip_fraction;
-                stats.grad_norm += s.grad_norm;
-                count += 1.0;
-            }
+        let stats = epochs(n, p, rng, |mb| self.train_minibatch(batch, mb, p));
+        UpdateStats {
+            learning_rate: self.learning_rate,
+            ..stats
         }
-        if count > 0.0 {
-            stats.surrogate_loss /= count;
-            stats.value_loss /= count;
-            stats.entropy /= count;
-            stats.kl /= count;
-            stats.clip_fraction /= count;
-            stats.grad_norm /= count;
-        }
-        stats.learning_rate = self.learning_rate;
-        stats
     }
 
     /// One minibatch: actor and critic passes (on two threads when `parallel`), the
@@ -331,13 +357,7 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
                 ..UpdateStats::default()
             };
         }
-        if let Some(target) = p.desired_kl {
-            if kl > 2.0 * target {
-                self.learning_rate = (self.learning_rate / 1.5).max(p.min_learning_rate);
-            } else if kl < target / 2.0 && kl > 0.0 {
-                self.learning_rate = (self.learning_rate * 1.5).min(p.max_learning_rate);
-            }
-        }
+        self.learning_rate = adapt_learning_rate(self.learning_rate, kl, p);
         let max = f64::from(p.max_grad_norm);
         if norm > max {
             let factor = (max / (norm + 1e-6)) as f32;
@@ -364,6 +384,100 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             learning_rate: lr,
             skipped: 0,
         }
+    }
+}
+
+impl Learner<Actor, Critic> {
+    /// [`Learner::update`] in the fused update: the parameters copied out of the `burn`
+    /// modules once, every minibatch step taken on them, the result copied back.
+    fn update_fused(&mut self, batch: &Batch, p: &PpoConfig, rng: &mut ChaCha8Rng) -> UpdateStats {
+        let mut fused = FusedLearner::new(&self.actor, &self.critic, self.fused_optim.take());
+        let (lr, train_actor, parallel) =
+            (&mut self.learning_rate, self.train_actor, self.parallel);
+        let stats = epochs(batch.len(), p, rng, |mb| {
+            fused.train_minibatch(batch, mb, p, lr, train_actor, parallel)
+        });
+        fused.write_to(&mut self.actor, &mut self.critic);
+        self.fused_optim = Some(fused.into_optim());
+        UpdateStats {
+            learning_rate: self.learning_rate,
+            ..stats
+        }
+    }
+
+    /// [`Learner::train_minibatch`] in the fused update (copying the parameters and Adam's
+    /// state in and out around the one step: for tests and benchmarks; [`Learner::update`]
+    /// copies once per update).
+    pub fn train_minibatch_fused(
+        &mut self,
+        b: &Batch,
+        idx: &[usize],
+        p: &PpoConfig,
+    ) -> UpdateStats {
+        let mut fused = FusedLearner::new(&self.actor, &self.critic, self.fused_optim.take());
+        let s = fused.train_minibatch(
+            b,
+            idx,
+            p,
+            &mut self.learning_rate,
+            self.train_actor,
+            self.parallel,
+        );
+        fused.write_to(&mut self.actor, &mut self.critic);
+        self.fused_optim = Some(fused.into_optim());
+        s
+    }
+}
+
+/// `epochs × minibatches` calls of `step` on minibatches of `0..n` drawn from `rng` (a fresh
+/// permutation every epoch), their statistics averaged over the steps not skipped (the
+/// learning rate left to the caller).
+fn epochs(
+    n: usize,
+    p: &PpoConfig,
+    rng: &mut ChaCha8Rng,
+    mut step: impl FnMut(&[usize]) -> UpdateStats,
+) -> UpdateStats {
+    let size = n / p.minibatches.max(1);
+    let mut stats = UpdateStats::default();
+    let mut count = 0.0;
+    let mut order: Vec<usize> = (0..n).collect();
+    for _ in 0..p.epochs {
+        order.shuffle(rng);
+        for mb in order.chunks_exact(size.max(1)) {
+            let s = step(mb);
+            if s.skipped > 0 {
+                stats.skipped += s.skipped;
+                continue;
+            }
+            stats.surrogate_loss += s.surrogate_loss;
+            stats.value_loss += s.value_loss;
+            stats.entropy += s.entropy;
+            stats.kl += s.kl;
+            stats.clip_fraction += s.clip_fraction;
+            stats.grad_norm += s.grad_norm;
+            count += 1.0;
+        }
+    }
+    if count > 0.0 {
+        stats.surrogate_loss /= count;
+        stats.value_loss /= count;
+        stats.entropy /= count;
+        stats.kl /= count;
+        stats.clip_fraction /= count;
+        stats.grad_norm /= count;
+    }
+    stats
+}
+
+/// The adaptive learning rate after a step that measured `kl` (RSL-RL): divided by 1.5 above
+/// twice the target (floor `min_learning_rate`), multiplied by 1.5 below half of it (cap
+/// 1e-2); unchanged without a target.
+pub fn adapt_learning_rate(lr: f64, kl: f64, p: &PpoConfig) -> f64 {
+    match p.desired_kl {
+        Some(target) if kl > 2.0 * target => (lr / 1.5).max(p.min_learning_rate),
+        Some(target) if kl < target / 2.0 && kl > 0.0 => (lr * 1.5).min(p.max_learning_rate),
+        _ => lr,
     }
 }
 

@@ -6,7 +6,8 @@
 //!   success, crashes, losses, KL, learning rate, σ, speed) and, every `run.eval_every`
 //!   iterations, the referee's evaluation of the current policy (`eval_*` keys);
 //! - `imitation.jsonl` and `warm_start.blob`: the warm start's rounds and its student;
-//! - `checkpoints/iter_NNNNNN/` (networks and Adam states as burnpack files, `state.json`) and
+//! - `checkpoints/iter_NNNNNN/` (networks and Adam states as burnpack files, the fused
+//!   update's Adam state as `fused_adam.safetensors` once it has one, `state.json`) and
 //!   `checkpoints/latest`, the name of the newest complete checkpoint, replaced atomically
 //!   after every file of the checkpoint is on disk: a kill at any moment leaves the previous
 //!   checkpoint usable, and `--resume` loses at most `run.checkpoint_every` iterations;
@@ -26,6 +27,7 @@
 use crate::config::TrainConfig;
 use crate::error::{TrainError, io};
 use crate::export::actor_blob;
+use crate::fused::FusedOptim;
 use crate::metrics::{IterationMetrics, learning_curves};
 use crate::model::{Actor, Critic};
 use crate::nets::{PolicyNet, ValueNet};
@@ -77,6 +79,10 @@ pub(crate) struct RunDir {
     latest: PathBuf,
     metrics: PathBuf,
 }
+
+/// The fused update's Adam state in a checkpoint ([`crate::fused::FusedOptim`]), written
+/// once the learner has one.
+const FUSED_ADAM: &str = "fused_adam.safetensors";
 
 /// The network files of a checkpoint.
 const CHECKPOINT_FILES: [&str; 4] = [
@@ -219,6 +225,13 @@ impl RunDir {
             .critic_optim
             .save(dir.join(CHECKPOINT_FILES[3]))
             .map_err(ck)?;
+        if let Some(optim) = &s.learner.fused_optim {
+            let bytes = optim
+                .to_safetensors()
+                .map_err(|e| TrainError::Checkpoint(format!("{name}/{FUSED_ADAM}: {e}")))?;
+            let p = dir.join(FUSED_ADAM);
+            write_atomically(&p, &bytes).map_err(io(&p))?;
+        }
         let state = CheckpointState {
             iteration: s.iteration,
             samples: s.samples,
@@ -300,6 +313,24 @@ impl RunDir {
         let mut learner = Learner::new(actor, critic, state.learning_rate, device.clone());
         learner.actor_optim = actor_optim;
         learner.critic_optim = critic_optim;
+        let fused = dir.join(FUSED_ADAM);
+        if !fused.exists()
+            && state.iteration > 0
+            && !arch.is_recurrent()
+            && config.ppo.update == crate::config::UpdateKind::Fused
+        {
+            eprintln!(
+                "note: {} has no {FUSED_ADAM} (written by the burn update): the fused update starts Adam afresh",
+                dir.display()
+            );
+        }
+        if fused.exists() {
+            let bytes = std::fs::read(&fused).map_err(io(&fused))?;
+            learner.fused_optim = Some(
+                FusedOptim::from_safetensors(&bytes)
+                    .map_err(|e| bad(format!("{FUSED_ADAM}: {e}")))?,
+            );
+        }
         let noise_rng =
             restore_rng(seed, &state.noise_rng).ok_or_else(|| bad("noise_rng".into()))?;
         let shuffle_rng =

@@ -5,7 +5,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::batch::{Batch, gae, gaussian_log_prob};
-use host_trainer::config::PpoConfig;
+use host_trainer::config::{PpoConfig, UpdateKind};
 use host_trainer::model::{Actor, Critic, values};
 use host_trainer::nets::{PolicyNet, ValueNet};
 use host_trainer::ppo::Learner;
@@ -32,6 +32,7 @@ fn params() -> PpoConfig {
         critic_learning_rate: None,
         init_std: 0.5,
         init_hover: false,
+        update: UpdateKind::Fused,
     }
 }
 
@@ -251,7 +252,7 @@ fn a_nan_minibatch_changes_nothing() {
 
 /// `max_std`: a large entropy bonus drives σ up; with the ceiling every σ stops at it after
 /// each step (the log-σ parameter keeps its id, so Adam's moments follow it), without it σ
-/// passes it.
+/// passes it; on burn's update and on the fused one.
 #[test]
 fn the_std_ceiling_holds_against_the_entropy_bonus() {
     let device = Device::flex().autodiff();
@@ -259,7 +260,7 @@ fn the_std_ceiling_holds_against_the_entropy_bonus() {
     let mut r = ChaCha8Rng::seed_from_u64(5);
     let n = 256;
     let obs: Vec<f32> = (0..n * 17).map(|_| r.random_range(-1.0..1.0)).collect();
-    let run = |max_std: Option<f32>, steps: usize| -> (Vec<f32>, Vec<f32>) {
+    let run = |max_std: Option<f32>, fused: bool| -> (Vec<f32>, Vec<f32>) {
         let mut rng = init_rng(4);
         let actor = Actor::fresh(&arch, 0.5, &mut rng, &device);
         let critic = Critic::fresh(&arch, &mut rng, &device);
@@ -293,15 +294,30 @@ fn the_std_ceiling_holds_against_the_entropy_bonus() {
         };
         let idx: Vec<usize> = (0..n).collect();
         let mut seen = Vec::new();
-        for _ in 0..steps {
-            learner.train_minibatch(&batch, &idx, &p);
+        for _ in 0..30 {
+            if fused {
+                learner.train_minibatch_fused(&batch, &idx, &p);
+            } else {
+                learner.train_minibatch(&batch, &idx, &p);
+            }
             seen.push(learner.actor.std().into_iter().fold(0.0, f32::max));
         }
         (learner.actor.std(), seen)
     };
-    let (free, _) = run(None, 30);
-    assert!(free.iter().all(|s| *s > 0.6), "no ceiling: σ {free:?}");
-    let (capped, seen) = run(Some(0.6), 30);
-    assert!(seen.iter().all(|s| *s <= 0.6 + 1e-6), "{seen:?}");
-    assert!(capped.iter().all(|s| (s - 0.6).abs() < 1e-5), "{capped:?}");
+    for fused in [false, true] {
+        let (free, _) = run(None, fused);
+        assert!(
+            free.iter().all(|s| *s > 0.6),
+            "fused {fused}, no ceiling: σ {free:?}"
+        );
+        let (capped, seen) = run(Some(0.6), fused);
+        assert!(
+            seen.iter().all(|s| *s <= 0.6 + 1e-6),
+            "fused {fused}: {seen:?}"
+        );
+        assert!(
+            capped.iter().all(|s| (s - 0.6).abs() < 1e-5),
+            "fused {fused}: {capped:?}"
+        );
+    }
 }

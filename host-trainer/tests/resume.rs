@@ -4,6 +4,7 @@
 
 use burn::tensor::Device;
 use host_trainer::config::TrainConfig;
+use host_trainer::fused::FusedOptim;
 use host_trainer::metrics::IterationMetrics;
 use host_trainer::nets::PolicyNet;
 use host_trainer::run_dir::checkpoint_actor;
@@ -49,6 +50,18 @@ fn a_killed_run_resumes_from_its_last_checkpoint() {
     assert_eq!((s.iterations, s.blob.is_none()), (2, true));
     let (it, actor_a) = checkpoint_actor(&config, &a, &device).unwrap();
     assert_eq!(it, 2);
+    // The fused update's Adam state is in the checkpoint: 2 iterations × 2 epochs × 2
+    // minibatches of steps, moments of the actor's size.
+    let bytes = std::fs::read(
+        a.join("checkpoints")
+            .join("iter_000002")
+            .join("fused_adam.safetensors"),
+    )
+    .unwrap();
+    let optim = FusedOptim::from_safetensors(&bytes).unwrap();
+    assert_eq!((optim.actor.time, optim.critic.time), (8, 8));
+    assert_eq!(optim.actor.moment_2.len(), actor_a.payload().len() + 4);
+    assert!(optim.actor.moment_2.iter().all(|v| *v > 0.0));
 
     // Another run, "killed" during iteration 3's checkpoint: a torn directory, a metrics
     // line past the checkpoint.

@@ -3,7 +3,7 @@
 //! [`TrainConfig::ours`] (`host-trainer/tests/config.rs` holds each equal to its TOML file).
 
 use super::{
-    EnvSection, PpoConfig, RunConfig, TrainConfig, WarmStart, default_eval_every,
+    EnvSection, PpoConfig, RunConfig, TrainConfig, UpdateKind, WarmStart, default_eval_every,
     default_eval_races, default_max_learning_rate, default_min_learning_rate,
     default_velocity_scale, one,
 };
@@ -136,6 +136,7 @@ impl Default for PpoConfig {
             critic_learning_rate: None,
             init_std: 1.0,
             init_hover: false,
+            update: UpdateKind::Fused,
         }
     }
 }
