@@ -224,6 +224,7 @@ def test_race_events():
         ({"episode_s": float("nan")}, ValueError, "episode_s"),
         ({"row": "G"}, ValueError, "row G"),
         ({"row": "Z"}, ValueError, "row 'Z'"),
+        ({"replay_fraction": 1.5}, ValueError, "replay_fraction 1.5"),
         ({"opponent": str(OPPONENT)}, ValueError, "no opponent"),
         ({"task": "race"}, ValueError, "needs an opponent"),
         ({"task": "race", "opponent": str(OPPONENT), "competition": "x"}, ValueError, "competition 'x'"),

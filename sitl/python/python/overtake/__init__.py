@@ -44,6 +44,7 @@ def make_vec_env(
     velocity_scale_mps: float = 3.0,
     spawn_speed_mps: float = 0.0,
     stage1_fraction: float = 0.0,
+    replay_fraction: float = 0.0,
 ) -> OvertakeVecEnv:
     """``num_envs`` auto-resetting environments of a time trial or a race.
 
@@ -69,6 +70,8 @@ def make_vec_env(
             shipped policies' is ``Policy(path).velocity_scale_mps``).
         spawn_speed_mps: time trial: highest initial speed along the spawn's heading.
         stage1_fraction: time trial: share of respawns at the paper's fixed start.
+        replay_fraction: time trial: share of respawns from the state right after one of
+            the env's own recent gate passes (when it has one; Song et al. 2023).
 
     Raises:
         ValueError: an unknown task, preset, spawn, row or competition, a bad number, a
@@ -90,6 +93,7 @@ def make_vec_env(
         velocity_scale_mps=velocity_scale_mps,
         spawn_speed_mps=spawn_speed_mps,
         stage1_fraction=stage1_fraction,
+        replay_fraction=replay_fraction,
     )
     return OvertakeVecEnv(env, task=task)
 
