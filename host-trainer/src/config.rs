@@ -461,6 +461,15 @@ impl TrainConfig {
         })
     }
 
+    /// Whether `self` is `earlier` with at most its budget (`run.iterations`) changed: the
+    /// one change a resumed run accepts, since nothing else in a run depends on the budget
+    /// (a run extended by `--resume` trains as one started with the larger budget would).
+    pub fn only_budget_differs_from(&self, earlier: &TrainConfig) -> bool {
+        let mut same_budget = earlier.clone();
+        same_budget.run.iterations = self.run.iterations;
+        same_budget.hash() == self.hash()
+    }
+
     /// Samples per iteration (envs × steps per env).
     pub fn samples_per_iteration(&self) -> usize {
         self.env.num_envs * self.ppo.steps_per_env

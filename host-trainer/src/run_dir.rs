@@ -291,10 +291,23 @@ impl RunDir {
         .map_err(|e| bad(format!("state.json: {e}")))?;
         let hash = format!("{:016x}", config.hash());
         if state.config_hash != hash {
-            return Err(bad(format!(
-                "written by a run with config hash {}, this config hashes to {hash}; resume with the run's own config.toml",
-                state.config_hash
-            )));
+            // A changed budget is allowed: the run's own config.toml (when it is the one the
+            // checkpoint was written under) tells whether that is all that changed.
+            let earlier = TrainConfig::load(&self.file("config.toml"))
+                .ok()
+                .filter(|c| format!("{:016x}", c.hash()) == state.config_hash);
+            match earlier {
+                Some(c) if config.only_budget_differs_from(&c) => eprintln!(
+                    "note: the run's budget changes from {} to {} iterations (nothing else may)",
+                    c.run.iterations, config.run.iterations
+                ),
+                _ => {
+                    return Err(bad(format!(
+                        "written by a run with config hash {}, this config hashes to {hash}; resume with the run's own config.toml (only run.iterations may change)",
+                        state.config_hash
+                    )));
+                }
+            }
         }
         let seed = config.run.seed;
         let mut rng = init_rng(seed);

@@ -1,6 +1,7 @@
 //! Checkpoints and resume: a run stopped and resumed, even after a kill left a torn
 //! checkpoint and metrics past it, ends where an uninterrupted run's learning state is at the
-//! checkpoint; a directory holding a run is not overwritten; a changed config is refused.
+//! checkpoint; a directory holding a run is not overwritten; a changed config is refused,
+//! except a changed budget.
 
 use burn::tensor::Device;
 use host_trainer::config::TrainConfig;
@@ -114,6 +115,49 @@ fn a_killed_run_resumes_from_its_last_checkpoint() {
         .to_string();
     assert!(e.contains("nothing to resume"), "{e}");
     for d in [a, b] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}
+
+#[test]
+fn a_resumed_run_may_raise_its_budget_and_trains_as_if_it_had_it_from_the_start() {
+    let config = TrainConfig::parse(CONFIG).unwrap();
+    assert_eq!(config.run.iterations, 4);
+    let device = Device::flex().autodiff();
+    let mut short = config.clone();
+    short.run.iterations = 2;
+
+    // A finished run of 2 iterations, extended to 4 by a resume with the larger budget.
+    let extended = tmp("extended");
+    let s = run(&short, &options(&extended, false, None)).unwrap();
+    assert_eq!((s.iterations, s.blob.is_some()), (2, true));
+    let s = run(&config, &options(&extended, true, None)).unwrap();
+    assert_eq!(s.iterations, 4);
+    let (it, actor_extended) = checkpoint_actor(&config, &extended, &device).unwrap();
+    assert_eq!(it, 4);
+
+    // A run with the budget of 4 from the start, stopped and resumed at the same iteration
+    // (a resume restarts the environments): the same actor and the same rollouts.
+    let whole = tmp("whole");
+    run(&config, &options(&whole, false, Some(2))).unwrap();
+    run(&config, &options(&whole, true, None)).unwrap();
+    let (_, actor_whole) = checkpoint_actor(&config, &whole, &device).unwrap();
+    assert_eq!(actor_extended.payload(), actor_whole.payload());
+    let rewards = |d: &Path| -> Vec<f64> { metrics(d).iter().map(|m| m.reward_per_step).collect() };
+    assert_eq!(rewards(&extended), rewards(&whole));
+    // The run directory now holds the extended config, so the next resume needs no note.
+    let stored = TrainConfig::load(&extended.join("config.toml")).unwrap();
+    assert_eq!(stored.hash(), config.hash());
+
+    // Any other change is still refused, also together with a budget change.
+    let mut other = config.clone();
+    other.run.iterations = 6;
+    other.ppo.clip = 0.3;
+    let e = run(&other, &options(&extended, true, None))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("only run.iterations may change"), "{e}");
+    for d in [extended, whole] {
         let _ = std::fs::remove_dir_all(d);
     }
 }
