@@ -280,6 +280,19 @@ pub struct EnvSection {
     pub replay_fraction: f32,
 }
 
+/// A falling σ ceiling ([`PpoConfig::max_std_decay`]). Its iterations are absolute, not
+/// fractions of the budget, so a run extended by `--resume` trains as before.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StdDecay {
+    /// The ceiling from `to_iteration` on.
+    pub final_std: f32,
+    /// The last iteration at `max_std` (iterations count from 0, the first update's).
+    pub from_iteration: u32,
+    /// The first iteration at `final_std`.
+    pub to_iteration: u32,
+}
+
 /// PPO hyper-parameters (docs/DESIGN.md "Learning"; the defaults are RSL-RL's and the paper's
 /// stage 1).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -328,6 +341,12 @@ pub struct PpoConfig {
     /// none. Default none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_std: Option<f32>,
+    /// The σ ceiling lowered during the run: from `max_std` it falls linearly to
+    /// `final_std` between two iterations (an annealed exploration noise). With the entropy
+    /// bonus holding σ at its ceiling, this is σ's schedule. Needs `max_std`. Paper: none.
+    /// Default none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_std_decay: Option<StdDecay>,
     /// A fixed critic learning rate instead of the actor's adaptive one. Paper: none (one
     /// rate). Default none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -432,6 +451,20 @@ impl WarmStart {
             }
             _ => self.learning_rate,
         }
+    }
+}
+
+impl PpoConfig {
+    /// The σ ceiling of the update that follows `iteration` iterations: `max_std`, lowered
+    /// by `max_std_decay` when there is one.
+    pub fn max_std_at(&self, iteration: u32) -> Option<f32> {
+        let max = self.max_std?;
+        let Some(d) = &self.max_std_decay else {
+            return Some(max);
+        };
+        let span = d.to_iteration.saturating_sub(d.from_iteration).max(1) as f32;
+        let t = (iteration.saturating_sub(d.from_iteration) as f32 / span).min(1.0);
+        Some(max + (d.final_std - max) * t)
     }
 }
 

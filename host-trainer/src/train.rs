@@ -4,7 +4,7 @@
 //! ([`crate::export`]). [`run`] reads top to bottom: `start`, then `iteration` after
 //! iteration, each followed by `evaluate` and the bookkeeping, then `finish`.
 
-use crate::config::{EnvSection, TrainConfig};
+use crate::config::{EnvSection, PpoConfig, TrainConfig};
 use crate::error::TrainError;
 use crate::evaluation::{best_evaluation, referee_eval, referee_prefers};
 use crate::export::{actor_blob, actor_from_blob, actor_safetensors};
@@ -226,7 +226,10 @@ fn iteration<A: PolicyNet, C: ValueNet>(
     config: &TrainConfig,
 ) -> Result<IterationMetrics, TrainError> {
     let started = Instant::now();
-    let params = &config.ppo;
+    let params = &PpoConfig {
+        max_std: config.ppo.max_std_at(state.iteration),
+        ..config.ppo.clone()
+    };
     state.learner.train_actor = config
         .warm_start
         .as_ref()

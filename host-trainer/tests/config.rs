@@ -136,3 +136,32 @@ fn the_presets_in_code_are_the_toml_presets() {
         assert_eq!(preset.hash(), TrainConfig::parse(text).unwrap().hash());
     }
 }
+
+#[test]
+fn the_sigma_ceiling_falls_linearly_between_its_iterations() {
+    let decay = "max_std = 1.0\nmax_std_decay = { final_std = 0.4, from_iteration = 100, to_iteration = 400 }\ninit_std";
+    let c = TrainConfig::parse(&STAGE1.replacen("init_std", decay, 1)).unwrap();
+    let at = |i| c.ppo.max_std_at(i).unwrap();
+    for (i, want) in [(0, 1.0), (100, 1.0), (250, 0.7), (400, 0.4), (10_000, 0.4)] {
+        assert!((at(i) - want).abs() < 1e-6, "iteration {i}: {}", at(i));
+    }
+    // Without a decay the ceiling is max_std throughout; without max_std there is none.
+    let fixed = TrainConfig::parse(&STAGE1.replacen("init_std", "max_std = 1.0\ninit_std", 1));
+    assert_eq!(fixed.unwrap().ppo.max_std_at(5_000), Some(1.0));
+    assert_eq!(TrainConfig::parse(STAGE1).unwrap().ppo.max_std_at(0), None);
+    for bad in [
+        // No ceiling to lower.
+        "max_std_decay = { final_std = 0.4, from_iteration = 1, to_iteration = 4 }\ninit_std",
+        // A ceiling that rises, and one that falls backwards in time.
+        "max_std = 1.0\nmax_std_decay = { final_std = 1.5, from_iteration = 1, to_iteration = 4 }\ninit_std",
+        "max_std = 1.0\nmax_std_decay = { final_std = 0.4, from_iteration = 4, to_iteration = 4 }\ninit_std",
+    ] {
+        assert!(
+            matches!(
+                TrainConfig::parse(&STAGE1.replacen("init_std", bad, 1)),
+                Err(ConfigError::Invalid(_))
+            ),
+            "{bad}"
+        );
+    }
+}

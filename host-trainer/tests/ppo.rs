@@ -29,6 +29,7 @@ fn params() -> PpoConfig {
         min_learning_rate: 1e-5,
         max_learning_rate: 1e-2,
         max_std: None,
+        max_std_decay: None,
         critic_learning_rate: None,
         init_std: 0.5,
         init_hover: false,

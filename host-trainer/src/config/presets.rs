@@ -133,6 +133,7 @@ impl Default for PpoConfig {
             min_learning_rate: default_min_learning_rate(),
             max_learning_rate: default_max_learning_rate(),
             max_std: None,
+            max_std_decay: None,
             critic_learning_rate: None,
             init_std: 1.0,
             init_hover: false,

@@ -173,6 +173,16 @@ fn ppo(c: &TrainConfig) -> Result<(), ConfigError> {
             return bad("ppo.max_std must be finite, positive and at least init_std");
         }
     }
+    if let Some(d) = &p.max_std_decay {
+        let Some(max) = p.max_std else {
+            return bad("ppo.max_std_decay lowers ppo.max_std, which is not set");
+        };
+        if !(d.final_std > 0.0 && d.final_std <= max && d.from_iteration < d.to_iteration) {
+            return bad(
+                "ppo.max_std_decay: final_std must be in (0, max_std] and from_iteration < to_iteration",
+            );
+        }
+    }
     if p.critic_learning_rate
         .is_some_and(|r| !(r.is_finite() && r > 0.0))
     {
