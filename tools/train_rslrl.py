@@ -86,6 +86,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--episode-s", type=float, default=15.0)
     p.add_argument("--spawn-speed-mps", type=float, default=0.0)
     p.add_argument("--stage1-fraction", type=float, default=0.0)
+    p.add_argument("--replay-fraction", type=float, default=0.0,
+                   help="share of respawns from an env's own recent post-pass states")
+    p.add_argument("--reward-weight", action="append", default=[], metavar="TERM=W",
+                   help="a reward weight other than the paper's, e.g. crash=1 (repeatable)")
+    p.add_argument("--max-std", type=float,
+                   help="σ ceiling: the std parameter is clamped to it after every update "
+                        "(host-trainer's ppo.max_std; RSL-RL has none)")
+    p.add_argument("--init-output-bias", type=float,
+                   help="start the actor's output bias at this action (host-trainer's "
+                        "ppo.init_hover: the preset's hover action, 0.519 with paper)")
     p.add_argument(
         "--velocity-scale-mps",
         type=float,
@@ -114,7 +124,17 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
             spawn=args.spawn,
             spawn_speed_mps=args.spawn_speed_mps,
             stage1_fraction=args.stage1_fraction,
+            replay_fraction=args.replay_fraction,
         )
+    weights = {}
+    for item in args.reward_weight:
+        term, _, value = item.partition("=")
+        try:
+            weights[term] = float(value)
+        except ValueError:
+            sys.exit(f"error: --reward-weight {item}: expected TERM=WEIGHT, e.g. crash=1")
+    if weights:
+        kw["reward_weights"] = weights
     return kw
 
 
@@ -204,6 +224,10 @@ def main(argv: list[str] | None = None) -> int:
         if unexpected or any(k.startswith(("actor.", "memory_a.", "std")) for k in missing):
             sys.exit(f"error: {args.init_blob} does not fit row {args.row}: {missing} {unexpected}")
 
+    if args.init_output_bias is not None:
+        with torch.no_grad():
+            policy.actor[-1].bias.fill_(args.init_output_bias)
+
     metrics = (args.out / "metrics.jsonl").open("w")
     samples_per_iteration = args.num_envs * args.steps_per_env
     # Wall-clock of training only: the referee's evaluations are timed apart (eval_s).
@@ -213,6 +237,9 @@ def main(argv: list[str] | None = None) -> int:
     def update_and_log() -> tuple:
         t0 = time.perf_counter()
         losses = update()
+        if args.max_std is not None:
+            with torch.no_grad():
+                policy.std.clamp_(max=args.max_std)
         t1 = time.perf_counter()
         clock["iteration"] += 1
         it = clock["iteration"]

@@ -22,7 +22,7 @@ use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use rayon::prelude::*;
 use sitl::dynamics::Preset;
-use sitl::env::{Competition, EnvConfig, RaceConfig, VecEnv};
+use sitl::env::{Competition, EnvConfig, RaceConfig, RewardWeights, VecEnv};
 use sitl::referee::SpawnMode;
 
 /// The most envs one environment holds: a bound that keeps an absurd request a
@@ -96,6 +96,37 @@ struct RustVecEnv {
     config: EnvConfig,
 }
 
+/// The paper's reward weights with the named ones replaced (`progress`, `command`,
+/// `smoothness`, `pass`, `crash`; each finite and >= 0).
+fn reward_weights_from(
+    overrides: std::collections::HashMap<String, f32>,
+) -> PyResult<RewardWeights> {
+    let mut w = RewardWeights::default();
+    let mut names: Vec<_> = overrides.into_iter().collect();
+    names.sort_by(|a, b| a.0.cmp(&b.0));
+    for (name, value) in names {
+        let slot = match name.as_str() {
+            "progress" => &mut w.progress,
+            "command" => &mut w.command,
+            "smoothness" => &mut w.smoothness,
+            "pass" => &mut w.pass,
+            "crash" => &mut w.crash,
+            _ => {
+                return Err(PyValueError::new_err(format!(
+                    "reward_weights: unknown term '{name}' (the terms are progress, command, smoothness, pass and crash)"
+                )));
+            }
+        };
+        if !(value.is_finite() && value >= 0.0) {
+            return Err(PyValueError::new_err(format!(
+                "reward_weights: {name} {value}: expected a finite weight >= 0"
+            )));
+        }
+        *slot = value;
+    }
+    Ok(w)
+}
+
 fn bools<'py>(py: Python<'py>, v: impl Iterator<Item = bool>) -> Bound<'py, PyArray1<bool>> {
     v.collect::<Vec<bool>>().into_pyarray(py)
 }
@@ -131,7 +162,8 @@ impl RustVecEnv {
     #[new]
     #[pyo3(signature = (*, task, num_envs, preset, seed, spawn, episode_s,
         random_initial_episode_length, opponent, competition, competition_weight, row,
-        velocity_scale_mps, spawn_speed_mps, stage1_fraction, replay_fraction=0.0))]
+        velocity_scale_mps, spawn_speed_mps, stage1_fraction, replay_fraction=0.0,
+        reward_weights=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         task: &str,
@@ -149,6 +181,7 @@ impl RustVecEnv {
         spawn_speed_mps: f32,
         stage1_fraction: f32,
         replay_fraction: f32,
+        reward_weights: Option<std::collections::HashMap<String, f32>>,
     ) -> PyResult<Self> {
         let race = match task {
             "time_trial" => false,
@@ -205,6 +238,7 @@ impl RustVecEnv {
                 "replay_fraction {replay_fraction}: expected a share in [0, 1]"
             )));
         }
+        let reward = reward_weights_from(reward_weights.unwrap_or_default())?;
         let row = match row {
             None if race => TableRow::G,
             None => TableRow::A,
@@ -257,10 +291,10 @@ impl RustVecEnv {
             replay_fraction,
             episode_s,
             random_initial_episode_length,
+            reward,
             observation,
             seed,
             race,
-            ..EnvConfig::paper_along_track(num_envs, seed)
         };
         Ok(Self {
             env: Self::build(config.clone())?,

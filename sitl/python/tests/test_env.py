@@ -167,6 +167,31 @@ def test_same_step_autoreset_and_final_observations():
     assert infos["_final_obs"][1] and np.array_equal(obs[1], start[1])
 
 
+def test_reward_weights_replace_the_papers_by_name():
+    """The fall of the test above with the crash weight at 1 and the progress weight at 0:
+    the crash costs dt·1 instead of dt·5, progress pays nothing, the other terms are the
+    paper's (the same falling steps, the same command and smoothness terms)."""
+    a = np.full((1, 4), -1.0, np.float32)
+    runs = {}
+    for weights in [None, {"crash": 1.0, "progress": 0.0}]:
+        env = overtake.make_vec_env(num_envs=1, spawn="stage1", reward_weights=weights)
+        env.reset(seed=0)
+        steps = []
+        while True:
+            _, _, term, _, infos = env.step(a)
+            steps.append({k: float(infos[k][0]) for k in ("progress", "command", "crash")})
+            if term[0]:
+                break
+        runs[weights is None] = steps
+    paper, changed = runs[True], runs[False]
+    assert len(paper) == len(changed)
+    assert paper[-1]["crash"] == pytest.approx(-DT * 5.0)
+    assert changed[-1]["crash"] == pytest.approx(-DT * 1.0)
+    assert any(s["progress"] != 0.0 for s in paper)
+    assert all(s["progress"] == 0.0 for s in changed)
+    assert [s["command"] for s in paper] == [s["command"] for s in changed]
+
+
 def test_reward_terms_add_up_and_match_numpy():
     """The reward is the terms' sum; the command and smoothness terms recomputed in numpy
     from the clipped actions (a swapped or mislabelled term fails here)."""
@@ -225,6 +250,9 @@ def test_race_events():
         ({"row": "G"}, ValueError, "row G"),
         ({"row": "Z"}, ValueError, "row 'Z'"),
         ({"replay_fraction": 1.5}, ValueError, "replay_fraction 1.5"),
+        ({"reward_weights": {"crsh": 1.0}}, ValueError, "unknown term 'crsh'"),
+        ({"reward_weights": {"crash": -1.0}}, ValueError, "crash -1"),
+        ({"reward_weights": {"pass": float("inf")}}, ValueError, "pass inf"),
         ({"opponent": str(OPPONENT)}, ValueError, "no opponent"),
         ({"task": "race"}, ValueError, "needs an opponent"),
         ({"task": "race", "opponent": str(OPPONENT), "competition": "x"}, ValueError, "competition 'x'"),

@@ -61,6 +61,14 @@ def test_unknown_environment_arguments_are_refused():
         VecEnv(num_env=4)
 
 
+def test_the_learning_levers_reach_the_environment():
+    """Replay spawns and reward weights pass through to make_vec_env (and its checks)."""
+    env = VecEnv(num_envs=4, replay_fraction=0.3, reward_weights={"crash": 1.0})
+    assert env.cfg["replay_fraction"] == 0.3 and env.cfg["reward_weights"] == {"crash": 1.0}
+    with pytest.raises(ValueError, match="unknown term"):
+        VecEnv(num_envs=4, reward_weights={"crsh": 1.0})
+
+
 @pytest.mark.parametrize("row", ["A", "G"])
 def test_one_runner_iteration_and_the_actor_names(row, tmp_path):
     from rsl_rl.runners import OnPolicyRunner

@@ -67,6 +67,8 @@ class VecEnv(_RslRlVecEnv):
             "velocity_scale_mps": 3.0,
             "spawn_speed_mps": 0.0,
             "stage1_fraction": 0.0,
+            "replay_fraction": 0.0,
+            "reward_weights": None,
         }
         unknown = set(make_vec_env_kwargs) - set(kwargs)
         if unknown:
