@@ -93,6 +93,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--max-std", type=float,
                    help="σ ceiling: the std parameter is clamped to it after every update "
                         "(host-trainer's ppo.max_std; RSL-RL has none)")
+    p.add_argument("--max-std-decay", type=float, nargs=3, metavar=("FINAL", "FROM", "TO"),
+                   help="the σ ceiling falls linearly from --max-std to FINAL between "
+                        "iterations FROM and TO (host-trainer's ppo.max_std_decay)")
     p.add_argument("--init-output-bias", type=float,
                    help="start the actor's output bias at this action (host-trainer's "
                         "ppo.init_hover: the preset's hover action, 0.519 with paper)")
@@ -136,6 +139,18 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     if weights:
         kw["reward_weights"] = weights
     return kw
+
+
+def max_std_at(args: argparse.Namespace, iteration: int) -> float | None:
+    """The σ ceiling of the update after ``iteration`` iterations (host-trainer's
+    ``PpoConfig::max_std_at``)."""
+    if args.max_std is None:
+        return None
+    if args.max_std_decay is None:
+        return args.max_std
+    final, start, end = args.max_std_decay
+    t = min(max(iteration - start, 0.0) / max(end - start, 1.0), 1.0)
+    return args.max_std + (final - args.max_std) * t
 
 
 def export_blob(policy: torch.nn.Module, args: argparse.Namespace, name: str) -> Path:
@@ -189,6 +204,8 @@ def parity(policy: torch.nn.Module, blob: Path, args: argparse.Namespace) -> flo
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.max_std_decay is not None and args.max_std is None:
+        sys.exit("error: --max-std-decay lowers --max-std, which is not given")
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
@@ -237,9 +254,10 @@ def main(argv: list[str] | None = None) -> int:
     def update_and_log() -> tuple:
         t0 = time.perf_counter()
         losses = update()
-        if args.max_std is not None:
+        ceiling = max_std_at(args, clock["iteration"])
+        if ceiling is not None:
             with torch.no_grad():
-                policy.std.clamp_(max=args.max_std)
+                policy.std.clamp_(max=ceiling)
         t1 = time.perf_counter()
         clock["iteration"] += 1
         it = clock["iteration"]
