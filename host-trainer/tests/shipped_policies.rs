@@ -14,8 +14,28 @@ fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap()
 }
 
-/// A shipped blob, its config and the best lap the referee recorded for it (s).
-const SHIPPED: &[(&str, &str, f64)] = &[("stage1_imitation", "stage1_imitation", 10.94)];
+/// A shipped blob, its config (from the repository root) and the best lap the referee
+/// recorded for it (s).
+const SHIPPED: &[(&str, &str, f64)] = &[
+    (
+        "stage1_imitation",
+        "host-trainer/configs/stage1_imitation.toml",
+        10.94,
+    ),
+    ("stage1_rl", "policies/stage1_rl/config.toml", 8.40),
+];
+
+/// `policies/stage1_rl.blob` is PPO from a random network with the committed recipe: its
+/// run's config is `configs/stage1_rl.toml` but for the run's name (e7).
+#[test]
+fn the_rl_policy_is_the_committed_recipe() {
+    let run = TrainConfig::load(&root().join("policies/stage1_rl/config.toml")).unwrap();
+    let mut recipe =
+        TrainConfig::load(&root().join("host-trainer/configs/stage1_rl.toml")).unwrap();
+    assert!(recipe.warm_start.is_none(), "no imitation");
+    recipe.run.name = run.run.name.clone();
+    assert_eq!(recipe.hash(), run.hash());
+}
 
 #[test]
 fn shipped_blobs_are_their_configs_and_fly_as_recorded() {
@@ -77,9 +97,8 @@ fn races_as_recorded(name: &str, raw: &[u8], opponent: &str, dir: &str) {
     );
 }
 
-fn check(name: &str, config_name: &str, recorded_lap_s: f64) {
-    let (raw, config, iterations) =
-        shipped_blob(name, &format!("host-trainer/configs/{config_name}.toml"));
+fn check(name: &str, config: &str, recorded_lap_s: f64) {
+    let (raw, config, iterations) = shipped_blob(name, config);
     assert_eq!(iterations, config.run.iterations);
 
     let spec = PilotSpec::from_blob(name, &raw).unwrap();
