@@ -23,30 +23,15 @@ fn config() -> TrainConfig {
     c
 }
 
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("overtake-race-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
-}
+mod common;
+use common::read_jsonl;
 
-/// The lines of a JSON-lines file the run wrote (`metrics.jsonl`, `imitation.jsonl`).
-fn read_jsonl<T: serde::de::DeserializeOwned>(path: &std::path::Path) -> Vec<T> {
-    std::fs::read_to_string(path)
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect()
+fn tmp(name: &str) -> PathBuf {
+    common::tmp_dir("race", name)
 }
 
 fn options(out: PathBuf) -> RunOptions {
-    RunOptions {
-        out,
-        resume: false,
-        device: Device::flex().autodiff(),
-        progress: false,
-        stop_after: None,
-        init_actor: None,
-    }
+    common::run_options(&out)
 }
 
 #[test]

@@ -14,29 +14,22 @@ use std::path::{Path, PathBuf};
 
 const CONFIG: &str = include_str!("../configs/smoke.toml");
 
+mod common;
+
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("overtake-resume-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
+    common::tmp_dir("resume", name)
 }
 
 fn options(out: &Path, resume: bool, stop_after: Option<u32>) -> RunOptions {
     RunOptions {
-        out: out.to_path_buf(),
         resume,
-        device: Device::flex().autodiff(),
-        progress: false,
         stop_after,
-        init_actor: None,
+        ..common::run_options(out)
     }
 }
 
 fn metrics(out: &Path) -> Vec<IterationMetrics> {
-    std::fs::read_to_string(out.join("metrics.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect()
+    common::read_jsonl(&out.join("metrics.jsonl"))
 }
 
 #[test]

@@ -1,10 +1,11 @@
 //! The falling σ ceiling (`ppo.max_std_decay`) in a run: with an entropy bonus strong enough
 //! to hold σ at its ceiling, the σ every iteration ends with is the schedule's.
 
-use burn::tensor::Device;
+mod common;
+
 use host_trainer::config::{StdDecay, TrainConfig};
 use host_trainer::metrics::IterationMetrics;
-use host_trainer::train::{RunOptions, run};
+use host_trainer::train::run;
 
 #[test]
 fn sigma_follows_its_falling_ceiling_through_a_run() {
@@ -17,25 +18,9 @@ fn sigma_follows_its_falling_ceiling_through_a_run() {
         from_iteration: 1,
         to_iteration: 3,
     });
-    let out = std::env::temp_dir().join(format!("overtake-std-decay-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
-    run(
-        &config,
-        &RunOptions {
-            out: out.clone(),
-            resume: false,
-            device: Device::flex().autodiff(),
-            progress: false,
-            stop_after: None,
-            init_actor: None,
-        },
-    )
-    .unwrap();
-    let m: Vec<IterationMetrics> = std::fs::read_to_string(out.join("metrics.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
+    let out = common::tmp_dir("std-decay", "run");
+    run(&config, &common::run_options(&out)).unwrap();
+    let m: Vec<IterationMetrics> = common::read_jsonl(&out.join("metrics.jsonl"));
     // Metrics line k is written after the update of iteration k - 1.
     let sigma: Vec<f64> = m.iter().map(|m| m.action_std).collect();
     for (k, want) in [(1, 1.0), (2, 1.0), (3, 0.75), (4, 0.5)] {
