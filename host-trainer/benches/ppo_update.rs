@@ -109,6 +109,7 @@ fn iteration(c: &mut Criterion) {
                 progress: false,
                 stop_after: Some(1),
                 init_actor: None,
+                fork_from: None,
             };
             first = false;
             run(&config, &options).unwrap()

@@ -62,6 +62,11 @@ enum Command {
         /// initialisation and the config's warm start.
         #[arg(long)]
         init_actor: Option<PathBuf>,
+        /// Start from the latest checkpoint of the run in this directory (networks, σ, Adam,
+        /// iteration, metrics) and train on under --config, which may change anything but
+        /// the networks: a fork, recorded in --out/forked_from.json.
+        #[arg(long)]
+        fork_from: Option<PathBuf>,
     },
     /// Export the actor of a run's latest checkpoint as a blob (a run still going, or
     /// stopped before its budget).
@@ -147,6 +152,7 @@ fn main() -> ExitCode {
             quiet,
             stop_after,
             init_actor,
+            fork_from,
         } => device(backend).and_then(|device| {
             train(
                 &config,
@@ -157,6 +163,7 @@ fn main() -> ExitCode {
                     progress: !quiet,
                     stop_after,
                     init_actor,
+                    fork_from,
                 },
             )
         }),

@@ -6,6 +6,8 @@
 //!   success, crashes, losses, KL, learning rate, σ, speed) and, every `run.eval_every`
 //!   iterations, the referee's evaluation of the current policy (`eval_*` keys);
 //! - `imitation.jsonl` and `warm_start.blob`: the warm start's rounds and its student;
+//! - `forked_from.json` (`--fork-from`): the parent run, iteration and config hash a fork
+//!   started from;
 //! - `checkpoints/iter_NNNNNN/` (networks and Adam states as burnpack files, the fused
 //!   update's Adam state as `fused_adam.safetensors` once it has one, `state.json`) and
 //!   `checkpoints/latest`, the name of the newest complete checkpoint, replaced atomically
@@ -270,16 +272,47 @@ impl RunDir {
     }
 
     /// The run state of the checkpoint `checkpoints/latest` names, refused when it was
-    /// written under another config.
+    /// written under another config (unless only `run.iterations` changed).
     pub fn load_checkpoint<A: PolicyNet, C: ValueNet>(
         &self,
         config: &TrainConfig,
         arch: &Architecture,
         device: &Device,
     ) -> Result<RunState<A, C>, TrainError> {
+        self.load_latest(config, arch, device, false)
+    }
+
+    /// A fork: the run state of this directory's latest checkpoint, to be trained on under
+    /// `config`, which may differ from the config the checkpoint was written under in
+    /// anything but the networks' shapes (a later stage of a curriculum, or a probe of one
+    /// setting from a trained state). Everything [`Self::load_checkpoint`] restores is
+    /// restored, metrics and iteration count included, so the fork's curves and schedules
+    /// continue the parent's. Returns the state and the parent's config hash.
+    pub fn fork<A: PolicyNet, C: ValueNet>(
+        &self,
+        config: &TrainConfig,
+        arch: &Architecture,
+        device: &Device,
+    ) -> Result<(RunState<A, C>, String), TrainError> {
+        let state = self.load_latest(config, arch, device, true)?;
+        let name = std::fs::read_to_string(&self.latest).map_err(io(&self.latest))?;
+        let json = self.checkpoints.join(name.trim()).join("state.json");
+        let parent: CheckpointState =
+            serde_json::from_str(&std::fs::read_to_string(&json).map_err(io(&json))?)
+                .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", json.display())))?;
+        Ok((state, parent.config_hash))
+    }
+
+    fn load_latest<A: PolicyNet, C: ValueNet>(
+        &self,
+        config: &TrainConfig,
+        arch: &Architecture,
+        device: &Device,
+        any_config: bool,
+    ) -> Result<RunState<A, C>, TrainError> {
         let name = std::fs::read_to_string(&self.latest).map_err(|_| {
             TrainError::OutDir(format!(
-                "nothing to resume: {} does not exist",
+                "nothing to resume (no checkpoint): {} does not exist",
                 self.latest.display()
             ))
         })?;
@@ -290,7 +323,7 @@ impl RunDir {
         )
         .map_err(|e| bad(format!("state.json: {e}")))?;
         let hash = format!("{:016x}", config.hash());
-        if state.config_hash != hash {
+        if state.config_hash != hash && !any_config {
             // A changed budget is allowed: the run's own config.toml (when it is the one the
             // checkpoint was written under) tells whether that is all that changed.
             let earlier = TrainConfig::load(&self.file("config.toml"))

@@ -44,6 +44,24 @@ pub struct RunOptions {
     /// random initialisation and the warm start: fine-tuning a policy, e.g. one imported from
     /// RSL-RL. Ignored on resume.
     pub init_actor: Option<PathBuf>,
+    /// Start a fresh run from the latest checkpoint of the run in this directory (networks,
+    /// σ, Adam states, learning rate, iteration, samples, wall-clock, metrics) under this
+    /// run's config, which may differ in anything but the networks: a fork. `forked_from.json`
+    /// in `out` records the parent. Ignored on resume.
+    pub fork_from: Option<PathBuf>,
+}
+
+/// `forked_from.json` in a forked run's directory: where its first state came from.
+#[derive(Clone, Debug, serde::Serialize, serde::Deserialize)]
+pub struct ForkedFrom {
+    /// The parent run's directory.
+    pub run: String,
+    /// The parent's iteration the fork starts from.
+    pub iteration: u32,
+    /// The parent's samples at that iteration.
+    pub samples: u64,
+    /// The hash of the config the parent's checkpoint was written under.
+    pub config_hash: String,
 }
 
 /// The end of a run.
@@ -146,6 +164,32 @@ fn start<A: Imitate, C: ValueNet>(
         )));
     }
     dir.create()?;
+    if let Some(parent) = &options.fork_from {
+        if options.init_actor.is_some() {
+            return Err(TrainError::OutDir(
+                "--fork-from and --init-actor both say where the actor starts; pass one".into(),
+            ));
+        }
+        let (state, config_hash) = RunDir::new(parent).fork::<A, C>(config, &arch, &device)?;
+        let record = ForkedFrom {
+            run: parent.display().to_string(),
+            iteration: state.iteration,
+            samples: state.samples,
+            config_hash,
+        };
+        let json = serde_json::to_string_pretty(&record)
+            .map_err(|e| TrainError::Export(format!("forked_from.json: {e}")))?;
+        let p = dir.file("forked_from.json");
+        write_atomically(&p, json.as_bytes()).map_err(crate::error::io(&p))?;
+        println!(
+            "forked from {} at iteration {} ({} samples)",
+            parent.display(),
+            record.iteration,
+            record.samples
+        );
+        dir.save_checkpoint(&state, config)?;
+        return Ok(state);
+    }
     let mut rng = init_rng(config.run.seed);
     let mut actor = A::fresh(&arch, config.ppo.init_std, &mut rng, &device);
     let critic = C::fresh(&arch, &mut rng, &device);

@@ -1,7 +1,7 @@
 //! Checkpoints and resume: a run stopped and resumed, even after a kill left a torn
 //! checkpoint and metrics past it, ends where an uninterrupted run's learning state is at the
 //! checkpoint; a directory holding a run is not overwritten; a changed config is refused,
-//! except a changed budget.
+//! except a changed budget; a fork (`--fork-from`) continues a run under a changed config.
 
 use burn::tensor::Device;
 use host_trainer::config::TrainConfig;
@@ -151,6 +151,83 @@ fn a_resumed_run_may_raise_its_budget_and_trains_as_if_it_had_it_from_the_start(
         .to_string();
     assert!(e.contains("only run.iterations may change"), "{e}");
     for d in [extended, whole] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}
+
+#[test]
+fn a_fork_continues_a_run_under_a_changed_config_and_records_its_parent() {
+    let config = TrainConfig::parse(CONFIG).unwrap();
+    let device = Device::flex().autodiff();
+    let mut short = config.clone();
+    short.run.iterations = 2;
+    let parent = tmp("fork_parent");
+    run(&short, &options(&parent, false, None)).unwrap();
+
+    // Forked under the parent's own recipe with the larger budget: the same learning state as
+    // resuming the parent with that budget (both respawn the environments at iteration 2).
+    let same = tmp("fork_same");
+    let fork = |out: &Path| RunOptions {
+        fork_from: Some(parent.clone()),
+        ..options(out, false, None)
+    };
+    let s = run(&config, &fork(&same)).unwrap();
+    assert_eq!(s.iterations, 4);
+    let resumed = tmp("fork_resumed");
+    run(&short, &options(&resumed, false, None)).unwrap();
+    run(&config, &options(&resumed, true, None)).unwrap();
+    let (_, a_same) = checkpoint_actor(&config, &same, &device).unwrap();
+    let (_, a_resumed) = checkpoint_actor(&config, &resumed, &device).unwrap();
+    assert_eq!(a_same.payload(), a_resumed.payload());
+
+    // The record of the parent, and the parent's metrics as the fork's first lines.
+    let record: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(same.join("forked_from.json")).unwrap())
+            .unwrap();
+    assert_eq!(record["iteration"], 2);
+    assert_eq!(record["config_hash"], format!("{:016x}", short.hash()));
+    let (m_parent, m_fork) = (metrics(&parent), metrics(&same));
+    assert_eq!(m_fork.len(), 4);
+    assert_eq!(
+        m_fork[..2]
+            .iter()
+            .map(|m| m.reward_per_step)
+            .collect::<Vec<_>>(),
+        m_parent
+            .iter()
+            .map(|m| m.reward_per_step)
+            .collect::<Vec<_>>()
+    );
+
+    // A changed setting (refused by --resume) is what the fork trains under.
+    let mut changed = config.clone();
+    changed.ppo.epochs += 1;
+    let other = tmp("fork_changed");
+    run(&changed, &fork(&other)).unwrap();
+    let (it, a_changed) = checkpoint_actor(&changed, &other, &device).unwrap();
+    assert_eq!(it, 4);
+    assert_ne!(a_changed.payload(), a_same.payload());
+    assert_eq!(
+        TrainConfig::load(&other.join("config.toml"))
+            .unwrap()
+            .hash(),
+        changed.hash()
+    );
+
+    // Two starting points are refused, and so is a parent without a checkpoint.
+    let both = RunOptions {
+        init_actor: Some(parent.join("smoke.blob")),
+        ..fork(&tmp("fork_both"))
+    };
+    let e = run(&config, &both).unwrap_err().to_string();
+    assert!(e.contains("pass one"), "{e}");
+    let orphan = RunOptions {
+        fork_from: Some(tmp("fork_nothing")),
+        ..options(&tmp("fork_orphan"), false, None)
+    };
+    let e = run(&config, &orphan).unwrap_err().to_string();
+    assert!(e.contains("no checkpoint"), "{e}");
+    for d in [parent, same, resumed, other] {
         let _ = std::fs::remove_dir_all(d);
     }
 }

@@ -21,6 +21,7 @@ pub fn run_options(out: &Path) -> RunOptions {
         progress: false,
         stop_after: None,
         init_actor: None,
+        fork_from: None,
     }
 }
 
