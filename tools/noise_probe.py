@@ -10,8 +10,9 @@ average action it wants, and flown deterministically it then overshoots.
 This probe flies `--envs` copies of the blob from the stage-1 spawn (the referee's) for
 `--seconds` of simulated time each, with actions clip(μ + σε) for every σ given, and prints
 gates and crashes per second and the success rate (gates passed / (passed + crashes), the
-referee's "encountered" counted the same way). σ = 0 is the deterministic flight the referee
-scores. Through the `overtake` Python package (sitl/python; `pip install ./sitl/python`).
+referee's "encountered" counted the same way), and the share of rotor commands the clip holds
+at full thrust (+1: a policy flying at the thrust limit has most of them there). σ = 0 is the
+deterministic flight the referee scores. Through the `overtake` Python package (sitl/python; `pip install ./sitl/python`).
 
     python3 tools/noise_probe.py runs/e5/e5.blob --sigma 0 0.3 0.6 1.0
 """
@@ -37,7 +38,7 @@ def main() -> None:
 
     policy = overtake.Policy(a.blob)
     print(f"{a.blob}: {a.envs} x {a.seconds:.0f} s from the stage-1 spawn, preset {a.preset}")
-    print("| σ | gates/s | crashes/s | success |\n|---|---|---|---|")
+    print("| σ | gates/s | crashes/s | success | commands at +1 |\n|---|---|---|---|---|")
     for sigma in a.sigma:
         env = overtake.make_vec_env(
             task="time_trial", num_envs=a.envs, preset=a.preset, seed=a.seed, spawn="stage1",
@@ -46,17 +47,18 @@ def main() -> None:
         obs, _ = env.reset(seed=a.seed)
         rng = np.random.default_rng(a.seed)
         steps = int(round(a.seconds / env.dt_s))
-        gates = crashes = 0
+        gates = crashes = saturated = 0
         for _ in range(steps):
             mean = policy.act(obs)
             noise = sigma * rng.standard_normal(mean.shape)
             action = np.clip(mean + noise, -1.0, 1.0).astype(np.float32)
+            saturated += int((action >= 1.0).sum())
             obs, _, _, _, info = env.step(action)
             gates += int(info["gate_passed"].sum())
             crashes += int(info["crashed"].sum())
         sim_s = a.envs * steps * env.dt_s
         print(f"| {sigma:.2f} | {gates / sim_s:.3f} | {crashes / sim_s:.3f} | "
-              f"{gates / max(gates + crashes, 1):.3f} |")
+              f"{gates / max(gates + crashes, 1):.3f} | {saturated / (a.envs * steps * 4):.3f} |")
 
 
 if __name__ == "__main__":
