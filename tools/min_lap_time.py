@@ -19,8 +19,15 @@ It is a local solver, so each case is solved from several initial guesses and th
 kept; the spread is printed. The thrust-to-weight of the `paper` preset follows from
 docs/DESIGN.md "Presets": rpm_max = 14468.429·1.8, half of kf·rpm² per propeller, mass 0.027 kg.
 
+`--rigid-body` also solves the lap of the drone itself: the paper preset's rigid body
+(sitl::dynamics: four rotor commands by eq. 3, held over each control interval, RK4 with two
+substeps, the attitude turned by the same rotors that lift), started from the point-mass lap
+and periodic in all 13 states. Its lap is what a policy could fly on this simulator (up to
+the solver's local optimum); the point mass bounds it from below.
+
     python3 -m pip install casadi numpy
     python3 tools/min_lap_time.py                      # the paper preset, a reserve sweep
+    python3 tools/min_lap_time.py --rigid-body --control-s 0.02   # the drone at 50 Hz
     python3 tools/min_lap_time.py --tw 1.618 --half 0.8 0.6
 """
 
@@ -128,6 +135,159 @@ def best_of(tw, half_m, intervals, flying, laps):
     return best, found, len(guesses)
 
 
+# The rigid body of the `paper` preset (docs/DESIGN.md "Presets", sitl::dynamics): four
+# propellers at (±0.028, ±0.028) m, thrust and yaw torque halved, rpm = base·(1 + 0.8·a).
+KM_NM_PER_RPM2 = 7.94e-12
+THRUST_SCALE = 0.5
+INERTIA_KGM2 = np.array([1.4e-5, 1.4e-5, 2.17e-5])
+PROPELLERS_M = np.array([[0.028, -0.028], [-0.028, -0.028], [-0.028, 0.028], [0.028, 0.028]])
+SPIN_SIGNS = np.array([-1.0, 1.0, -1.0, 1.0])
+RPM_BASE = 14468.429
+
+
+def rigid_body_derivative(x, act, thrust_share):
+    """d/dt of the state (position, velocity, quaternion w x y z, body rates) under the
+    actions `act` in [-1, 1] (eq. 3), as sitl::dynamics integrates it; `thrust_share` scales
+    the rpm range's top (1 = the preset)."""
+    rpm = RPM_BASE * (1 + 0.8 * act) * np.sqrt(thrust_share)
+    f = THRUST_SCALE * KF_N_PER_RPM2 * rpm**2
+    tau = ca.vertcat(
+        ca.dot(ca.DM(PROPELLERS_M[:, 1]), f),
+        -ca.dot(ca.DM(PROPELLERS_M[:, 0]), f),
+        THRUST_SCALE * KM_NM_PER_RPM2 * ca.dot(ca.DM(SPIN_SIGNS), rpm**2),
+    )
+    v, q, w = x[3:6], x[6:10], x[10:13]
+    qw, qx, qy, qz = q[0], q[1], q[2], q[3]
+    body_z = ca.vertcat(2 * (qx * qz + qw * qy), 2 * (qy * qz - qw * qx), 1 - 2 * (qx**2 + qy**2))
+    accel = body_z * ca.sum1(f) / MASS_KG - ca.DM([0, 0, GRAVITY_MPS2])
+    j = ca.DM(INERTIA_KGM2)
+    alpha = (tau - ca.cross(w, j * w)) / j
+    qdot = 0.5 * ca.vertcat(
+        -qx * w[0] - qy * w[1] - qz * w[2],
+        qw * w[0] + qy * w[2] - qz * w[1],
+        qw * w[1] - qx * w[2] + qz * w[0],
+        qw * w[2] + qx * w[1] - qy * w[0],
+    )
+    return ca.vertcat(v, accel, qdot, alpha)
+
+
+def rigid_body_step(x, act, h, substeps, thrust_share):
+    """RK4 over `h` seconds in `substeps` substeps, the actions held (as the simulator)."""
+    k = h / substeps
+    for _ in range(substeps):
+        k1 = rigid_body_derivative(x, act, thrust_share)
+        k2 = rigid_body_derivative(x + 0.5 * k * k1, act, thrust_share)
+        k3 = rigid_body_derivative(x + 0.5 * k * k2, act, thrust_share)
+        k4 = rigid_body_derivative(x + k * k3, act, thrust_share)
+        x = x + k / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return x
+
+
+def attitude_for(thrust_dir):
+    """The quaternion (w, x, y, z) of the smallest rotation taking e_z to `thrust_dir`."""
+    z = np.array([0.0, 0.0, 1.0])
+    d = thrust_dir / np.linalg.norm(thrust_dir)
+    axis = np.cross(z, d)
+    c = float(np.dot(z, d))
+    q = np.array([1 + c, *axis])
+    return q / np.linalg.norm(q)
+
+
+def solve_rigid_body(point_mass, control_s, substeps, thrust_share, min_control_s):
+    """The time-optimal repeatable lap of the `paper` rigid body (rotor commands held over
+    intervals of about `control_s`, at least `min_control_s`), started from the point-mass
+    solution: (lap s, segment times, states, actions) or None."""
+    _, segs_pm, xs_pm = point_mass
+    n_track = len(GATES_M)
+    pm_intervals = xs_pm.shape[1] // n_track
+    opti = ca.Opti()
+    seg_s = opti.variable(n_track)
+    states, actions, counts = [], [], []
+    sx, su, sh = ca.SX.sym("x", 13), ca.SX.sym("u", 4), ca.SX.sym("h")
+    step = ca.Function("step", [sx, su, sh], [rigid_body_step(sx, su, sh, substeps, thrust_share)])
+    for k in range(n_track):
+        n = max(8, int(round(segs_pm[k] / control_s)))
+        counts.append(n)
+        x = opti.variable(13, n + 1)
+        u = opti.variable(4, n)
+        states.append(x)
+        actions.append(u)
+        dt = seg_s[k] / n
+        steps = step.map(n)(x[:, :-1], u, ca.repmat(dt, 1, n))
+        opti.subject_to(x[:, 1:] == steps)
+        opti.subject_to(opti.bounded(-1, ca.vec(u), 1))
+        opti.subject_to(x[2, :] >= GROUND_M)
+        opti.subject_to(ca.sumsqr(x[6:10, 0]) == 1)
+        opti.subject_to(dt >= min_control_s)
+    for k in range(n_track):
+        end, nxt = states[k][:, -1], states[(k + 1) % n_track][:, 0]
+        opti.subject_to(end == nxt)
+        at_gate(opti, end[0:6], (k + 1) % n_track, 0.8)
+    opti.minimize(ca.sum1(seg_s))
+    # Initial guess: the point mass's path and speeds, the attitude that points the thrust
+    # where the point mass accelerates, a collective that gives that acceleration.
+    for k in range(n_track):
+        opti.set_initial(seg_s[k], segs_pm[k])
+        block = xs_pm[:, k * pm_intervals : (k + 1) * pm_intervals + 1]
+        if block.shape[1] < pm_intervals + 1:
+            block = np.concatenate([block, xs_pm[:, :1]], 1)
+        n = counts[k]
+        src = np.linspace(0, 1, block.shape[1])
+        dst = np.linspace(0, 1, n + 1)
+        pv = np.stack([np.interp(dst, src, block[r]) for r in range(6)])
+        dt = segs_pm[k] / n
+        acc = np.gradient(pv[3:6], dt, axis=1) + np.array([[0], [0], [GRAVITY_MPS2]])
+        quats = np.stack([attitude_for(acc[:, i]) for i in range(n + 1)], 1)
+        opti.set_initial(states[k][0:6, :], pv)
+        opti.set_initial(states[k][6:10, :], quats)
+        opti.set_initial(states[k][10:13, :], 0)
+        thrust_n = MASS_KG * np.linalg.norm(acc[:, :n], axis=0) / 4
+        rpm = np.sqrt(thrust_n / (THRUST_SCALE * KF_N_PER_RPM2 * thrust_share))
+        opti.set_initial(actions[k], np.tile(np.clip((rpm / RPM_BASE - 1) / 0.8, -1, 1), (4, 1)))
+    opti.solver(
+        "ipopt",
+        {"print_time": False},
+        # Exact Hessians wander off (the rates' dynamics are stiff: 1.4e-5 kg·m² of
+        # inertia); quasi-Newton with an adaptive barrier converges from the point mass.
+        {
+            "print_level": 0,
+            "max_iter": 5000,
+            "mu_strategy": "adaptive",
+            "hessian_approximation": "limited-memory",
+            "acceptable_tol": 1e-5,
+            "acceptable_constr_viol_tol": 1e-6,
+            "acceptable_iter": 10,
+        },
+    )
+    try:
+        sol = opti.solve()
+    except RuntimeError:
+        return None
+    segs = np.array(sol.value(seg_s)).ravel()
+    xs = np.concatenate([sol.value(states[k])[:, :-1] for k in range(n_track)], 1)
+    us = np.concatenate([sol.value(actions[k]) for k in range(n_track)], 1)
+    return segs.sum(), segs, xs, us, [segs[k] / counts[k] for k in range(n_track)]
+
+
+def rigid_body_report(intervals, control_s):
+    """Prints the point-mass and the rigid-body repeatable laps of the paper preset."""
+    point_mass, _, _ = best_of(PAPER_TW, 0.8, intervals, False, 1)
+    if point_mass is None:
+        sys.exit("the point-mass lap did not solve")
+    print(f"point mass, T/W {PAPER_TW:.3f}: repeatable lap {point_mass[0]:.3f} s")
+    r = solve_rigid_body(point_mass, control_s, 2, 1.0, 0.0)
+    if r is None:
+        sys.exit("the rigid-body lap did not converge from the point-mass start")
+    lap, segs, xs, us, held = r
+    speed = np.linalg.norm(xs[3:6], axis=0)
+    print(
+        f"rigid body, rotor commands held {min(held) * 1e3:.0f}-{max(held) * 1e3:.0f} ms: "
+        f"repeatable lap {lap:.3f} s ({lap / point_mass[0]:.3f} x the point mass); segments "
+        f"{', '.join(f'{t:.3f}' for t in segs)} s; speed {speed.min():.1f}-{speed.max():.1f} m/s; "
+        f"commands at +1: {(us >= 0.999).mean():.0%}"
+    )
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument(
@@ -149,7 +309,24 @@ def main():
         default=1,
         help="with --flying: laps flown from the free state, the last one timed",
     )
+    p.add_argument(
+        "--rigid-body",
+        action="store_true",
+        help="also solve the repeatable lap of the paper preset's rigid body (four rotor "
+        "commands held over each control interval, the attitude turned by the same motors; "
+        "takes tens of minutes), started from the point-mass lap",
+    )
+    p.add_argument(
+        "--control-s",
+        type=float,
+        default=0.04,
+        help="with --rigid-body: the length the rotor commands are held (s; about, the "
+        "segment times are free; the simulator's is 0.02)",
+    )
     args = p.parse_args()
+    if args.rigid_body:
+        rigid_body_report(args.intervals, args.control_s)
+        return
     tws = args.tw or [PAPER_TW * f for f in (1.0, 0.97, 0.93, 0.90)]
     if args.laps > 1 and not args.flying:
         p.error("--laps needs --flying")
