@@ -279,7 +279,7 @@ impl RunDir {
         arch: &Architecture,
         device: &Device,
     ) -> Result<RunState<A, C>, TrainError> {
-        self.load_latest(config, arch, device, false)
+        Ok(self.load_latest(config, arch, device, false)?.0)
     }
 
     /// A fork: the run state of this directory's latest checkpoint, to be trained on under
@@ -294,22 +294,19 @@ impl RunDir {
         arch: &Architecture,
         device: &Device,
     ) -> Result<(RunState<A, C>, String), TrainError> {
-        let state = self.load_latest(config, arch, device, true)?;
-        let name = std::fs::read_to_string(&self.latest).map_err(io(&self.latest))?;
-        let json = self.checkpoints.join(name.trim()).join("state.json");
-        let parent: CheckpointState =
-            serde_json::from_str(&std::fs::read_to_string(&json).map_err(io(&json))?)
-                .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", json.display())))?;
-        Ok((state, parent.config_hash))
+        self.load_latest(config, arch, device, true)
     }
 
+    /// The latest checkpoint's run state and the hash of the config it was written under
+    /// (read from the one `state.json`, so a parent still writing checkpoints cannot pair
+    /// one checkpoint with the next one's hash).
     fn load_latest<A: PolicyNet, C: ValueNet>(
         &self,
         config: &TrainConfig,
         arch: &Architecture,
         device: &Device,
         any_config: bool,
-    ) -> Result<RunState<A, C>, TrainError> {
+    ) -> Result<(RunState<A, C>, String), TrainError> {
         let name = std::fs::read_to_string(&self.latest).map_err(|_| {
             TrainError::OutDir(format!(
                 "nothing to resume (no checkpoint): {} does not exist",
@@ -381,7 +378,7 @@ impl RunDir {
             restore_rng(seed, &state.noise_rng).ok_or_else(|| bad("noise_rng".into()))?;
         let shuffle_rng =
             restore_rng(seed, &state.shuffle_rng).ok_or_else(|| bad("shuffle_rng".into()))?;
-        Ok(RunState {
+        let run_state = RunState {
             learner,
             iteration: state.iteration,
             samples: state.samples,
@@ -389,7 +386,8 @@ impl RunDir {
             noise_rng,
             shuffle_rng,
             history: self.read_metrics(state.iteration)?,
-        })
+        };
+        Ok((run_state, state.config_hash))
     }
 }
 
