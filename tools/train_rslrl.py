@@ -20,6 +20,11 @@ What it does, in order:
 4. referees the blob (``sitl eval``, 45 s episodes from the stage-1 spawn for a time trial,
    races against the opponent for a race) and prints the result.
 
+A long run spans sessions: every ``--checkpoint-every`` iterations (50) it writes
+``OUT/checkpoint.pt`` atomically (networks, σ, Adam, the adaptive learning rate, iteration and
+training wall-clock), and the same command with ``--resume`` (and a larger ``--iterations``
+if wanted) continues it, its metrics and wall-clock running on from the checkpoint.
+
 Rows: A (time trial, MLP 2x128) and the LSTM rows E, F, G (races against ``--opponent``,
 ``policies/stage1_guarded.blob`` by default). Needs PyTorch, rsl-rl-lib 2.2.4, tensorboard,
 safetensors and the ``overtake`` package (README "Train from Python"); the Rust binaries
@@ -30,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import time
@@ -107,7 +113,86 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--opponent", type=Path, default=REPO / "policies/stage1_guarded.blob")
     p.add_argument("--parity-envs", type=int, default=256, help="envs of the parity rollout")
     p.add_argument("--parity-steps", type=int, default=200, help="steps of the parity rollout")
+    p.add_argument("--checkpoint-every", type=int, default=50,
+                   help="write OUT/checkpoint.pt (atomically) every K iterations (0: never)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in OUT from its checkpoint: networks, Adam, the adaptive "
+                        "learning rate, σ, the iteration, samples and wall-clock; the metrics "
+                        "after the checkpoint are dropped and the environments restart (seeded "
+                        "by --seed and the iteration). The arguments that shape training must be "
+                        "the run's own (--iterations, --checkpoint-every, --threads and the "
+                        "referee's and parity check's may change)")
     return p.parse_args(argv)
+
+
+#: Arguments a resumed run may change: how long it runs and how often it reports.
+RESUMABLE_CHANGES = {
+    "iterations", "checkpoint_every", "resume", "threads",
+    "eval_every", "eval_episodes", "eval_seed", "parity_envs", "parity_steps",
+}  # fmt: skip
+
+
+def run_arguments(args: argparse.Namespace) -> dict[str, Any]:
+    """The arguments that define a run (those a resume must not change), JSON-comparable."""
+    return {
+        k: (str(v) if isinstance(v, Path) else v)
+        for k, v in sorted(vars(args).items())
+        if k not in RESUMABLE_CHANGES
+    }
+
+
+def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
+    """``torch.save`` to a temporary file beside ``path``, then an atomic rename: a run
+    killed while writing keeps its previous checkpoint."""
+    tmp = path.with_suffix(".pt.tmp")
+    with tmp.open("wb") as f:
+        torch.save(state, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def load_checkpoint(args: argparse.Namespace) -> dict[str, Any]:
+    """The run's checkpoint, refused with a clear error when absent or not this run's."""
+    path = args.out / "checkpoint.pt"
+    if not path.exists():
+        sys.exit(f"error: --resume: {path} does not exist (nothing to resume)")
+    try:
+        state = torch.load(path, weights_only=False)
+    except Exception as e:  # a truncated or foreign file
+        sys.exit(f"error: --resume: {path} is not a readable checkpoint: {e}")
+    saved, now = state["arguments"], run_arguments(args)
+    changed = sorted(k for k in saved.keys() | now.keys() if saved.get(k) != now.get(k))
+    if changed:
+        sys.exit(
+            "error: --resume with different arguments than the run's own: "
+            + ", ".join(f"{k} {saved.get(k)!r} -> {now.get(k)!r}" for k in changed)
+        )
+    if state["iteration"] >= args.iterations:
+        sys.exit(
+            f"error: --resume: the checkpoint is at iteration {state['iteration']}, "
+            f"--iterations {args.iterations} leaves nothing to train"
+        )
+    return state
+
+
+def keep_metrics_up_to(path: Path, iteration: int) -> None:
+    """Drops the metrics lines written after ``iteration`` (a run killed after its last
+    checkpoint logged iterations the resumed run trains again)."""
+    if not path.exists():
+        return
+    kept = []
+    for line in path.read_text().splitlines():
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:  # the torn last line of a killed run
+            break
+        if row["iteration"] > iteration:
+            break
+        kept.append(line + "\n")
+    tmp = path.with_suffix(".jsonl.tmp")
+    tmp.write_text("".join(kept))
+    os.replace(tmp, path)
 
 
 def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
@@ -208,13 +293,18 @@ def main(argv: list[str] | None = None) -> int:
         sys.exit("error: --max-std-decay lowers --max-std, which is not given")
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
-    args.out.mkdir(parents=True, exist_ok=True)
     if args.velocity_scale_mps is None:
         args.velocity_scale_mps = (
             overtake.Policy(args.init_blob).velocity_scale_mps if args.init_blob else 3.0
         )
+    resumed = load_checkpoint(args) if args.resume else None
+    start_iteration = resumed["iteration"] if resumed else 0
+    args.out.mkdir(parents=True, exist_ok=True)
 
-    env = VecEnv(num_envs=args.num_envs, **env_kwargs(args))
+    # A resumed run's environments restart from a seed of their own (the iteration's), so
+    # the rollouts after a resume are not the first ones again.
+    env_kw = env_kwargs(args) | {"seed": args.seed + start_iteration}
+    env = VecEnv(num_envs=args.num_envs, **env_kw)
     cfg = paper_train_cfg(args.row)
     cfg["num_steps_per_env"] = args.steps_per_env
     cfg["save_interval"] = max(args.iterations, 1)
@@ -233,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
     runner = OnPolicyRunner(env, cfg, log_dir=str(args.out / "rsl_rl"), device="cpu")
     policy = runner.alg.actor_critic
 
-    if args.init_blob:
+    if args.init_blob and not resumed:
         st = args.out / "init.safetensors"
         cargo("host-trainer", "export-rslrl", "--blob", str(args.init_blob), "--out", str(st),
               "--std", str(args.init_std))  # fmt: skip
@@ -241,15 +331,40 @@ def main(argv: list[str] | None = None) -> int:
         if unexpected or any(k.startswith(("actor.", "memory_a.", "std")) for k in missing):
             sys.exit(f"error: {args.init_blob} does not fit row {args.row}: {missing} {unexpected}")
 
-    if args.init_output_bias is not None:
+    if args.init_output_bias is not None and not resumed:
         with torch.no_grad():
             policy.actor[-1].bias.fill_(args.init_output_bias)
 
-    metrics = (args.out / "metrics.jsonl").open("w")
-    samples_per_iteration = args.num_envs * args.steps_per_env
+    metrics_path = args.out / "metrics.jsonl"
     # Wall-clock of training only: the referee's evaluations are timed apart (eval_s).
-    clock = {"start": time.perf_counter(), "last": time.perf_counter(), "iteration": 0, "eval": 0.0}
+    now = time.perf_counter()
+    clock = {"start": now, "last": now, "iteration": 0, "eval": 0.0}
+    if resumed:
+        policy.load_state_dict(resumed["model"])
+        runner.alg.optimizer.load_state_dict(resumed["optimizer"])
+        runner.alg.learning_rate = resumed["learning_rate"]
+        torch.set_rng_state(resumed["torch_rng"])
+        clock["iteration"] = start_iteration
+        runner.current_learning_iteration = start_iteration
+        clock["start"] = now - resumed["wall_s"]
+        keep_metrics_up_to(metrics_path, start_iteration)
+        print(f"resumed {args.out} at iteration {start_iteration} "
+              f"({start_iteration * args.num_envs * args.steps_per_env / 1e6:.1f} M samples, "
+              f"{resumed['wall_s']:.0f} s of training)")  # fmt: skip
+    metrics = metrics_path.open("a" if resumed else "w")
+    samples_per_iteration = args.num_envs * args.steps_per_env
     update = runner.alg.update
+
+    def checkpoint(it: int, wall_s: float) -> None:
+        save_checkpoint(args.out / "checkpoint.pt", {
+            "iteration": it,
+            "wall_s": wall_s,
+            "model": policy.state_dict(),
+            "optimizer": runner.alg.optimizer.state_dict(),
+            "learning_rate": runner.alg.learning_rate,
+            "torch_rng": torch.get_rng_state(),
+            "arguments": run_arguments(args),
+        })  # fmt: skip
 
     def update_and_log() -> tuple:
         t0 = time.perf_counter()
@@ -286,6 +401,8 @@ def main(argv: list[str] | None = None) -> int:
             clock["eval"] += time.perf_counter() - t2
         metrics.write(json.dumps(row) + "\n")
         metrics.flush()
+        if args.checkpoint_every and it % args.checkpoint_every == 0:
+            checkpoint(it, row["wall_s"])
         print(
             f"it {it:4d}  {row['samples'] / 1e6:7.1f} M samples  {row['wall_s']:7.0f} s  "
             f"{samples_per_iteration / (t1 - clock['last']) / 1e3:5.1f} k samples/s  "
@@ -297,9 +414,11 @@ def main(argv: list[str] | None = None) -> int:
         return losses
 
     runner.alg.update = update_and_log
-    runner.learn(args.iterations, init_at_random_ep_len=True)
+    runner.learn(args.iterations - start_iteration, init_at_random_ep_len=True)
     wall = clock["last"] - clock["start"] - clock["eval"]
     samples = args.iterations * samples_per_iteration
+    if args.checkpoint_every:
+        checkpoint(args.iterations, wall)
     print(f"trained {args.iterations} iterations, {samples / 1e6:.1f} M samples in {wall:.0f} s "
           f"({samples / wall / 1e3:.1f} k samples/s end to end)")  # fmt: skip
 
