@@ -29,6 +29,15 @@ the solver's local optimum); the point mass bounds it from below.
     python3 tools/min_lap_time.py                      # the paper preset, a reserve sweep
     python3 tools/min_lap_time.py --rigid-body --control-s 0.02   # the drone at 50 Hz
     python3 tools/min_lap_time.py --tw 1.618 --half 0.8 0.6
+
+`--compare TRACE` says where a flown lap loses its time: it reads the positions of
+`sitl eval --trace TRACE` (every episode, broken at respawns), finds the gate passes and
+every complete lap, and prints per gate-to-gate segment the flight's median time beside the
+optimal lap's, with where each crosses the gate (left of the gate's +x and above its
+centre, m), its speed there, the path length and the height range.
+
+    cargo run --release -p sitl -- eval --ego policies/stage1_rl.blob --trace t.json
+    python3 tools/min_lap_time.py --compare t.json
 """
 
 import argparse
@@ -288,6 +297,104 @@ def rigid_body_report(intervals, control_s):
     )
 
 
+def gate_crossing(p0, p1, gate, half_m):
+    """Where the step p0 -> p1 crosses ``gate``'s plane front to back inside the opening:
+    (fraction of the step, left m, up m), else None."""
+    a, b = (p0 - GATES_M[gate]) @ FORWARD[gate], (p1 - GATES_M[gate]) @ FORWARD[gate]
+    if not a < 0 <= b:
+        return None
+    f = -a / (b - a)
+    rel = p0 + f * (p1 - p0) - GATES_M[gate]
+    left, up = rel @ LEFT[gate], rel[2]
+    if abs(left) > half_m or abs(up) > half_m:
+        return None
+    return f, left, up
+
+
+def flown_passes(positions, respawns, dt):
+    """Gate passes of one traced episode: lists of (time s, gate, left, up, speed, step),
+    one list per stretch between respawns. After a (re)spawn the target is unknown, so the
+    first pass of any gate starts the count."""
+    stretches, bounds = [], [0, *sorted(respawns), len(positions)]
+    for lo, hi in zip(bounds[:-1], bounds[1:]):
+        passes, target = [], None
+        for i in range(lo + 1, hi):
+            for gate in range(len(GATES_M)) if target is None else [target]:
+                c = gate_crossing(positions[i - 1], positions[i], gate, 0.8)
+                if c is None:
+                    continue
+                f, left, up = c
+                speed = np.linalg.norm(positions[i] - positions[i - 1]) / dt
+                passes.append(((i - 1 + f) * dt, gate, left, up, speed, i))
+                target = (gate + 1) % len(GATES_M)
+                break
+        stretches.append(passes)
+    return stretches
+
+
+def compare_report(trace_path, intervals):
+    """Per segment: the flown laps of a trace (medians) beside the optimal lap."""
+    import json
+
+    trace = json.loads(open(trace_path).read())
+    n = len(GATES_M)
+    segs_flown = [[] for _ in range(n)]
+    cross = [[] for _ in range(n)]
+    paths = [[] for _ in range(n)]
+    heights = [[] for _ in range(n)]
+    laps = []
+    for ep in trace["episodes"]:
+        dt = ep["dt_s"]
+        pos = np.asarray(ep["ego_m"], float)
+        for passes in flown_passes(pos, ep.get("respawns") or [], dt):
+            for k in range(len(passes) - n):
+                if passes[k][1] == 0:
+                    laps.append(passes[k + n][0] - passes[k][0])
+            for a, b in zip(passes[:-1], passes[1:]):
+                g = a[1]
+                segs_flown[g].append(b[0] - a[0])
+                cross[b[1]].append(b[2:5])
+                stretch = pos[a[5] - 1 : b[5] + 1]
+                paths[g].append(np.linalg.norm(np.diff(stretch, axis=0), axis=1).sum())
+                heights[g].append((stretch[:, 2].min(), stretch[:, 2].max()))
+    if not laps:
+        sys.exit(f"{trace_path}: no complete lap (g0 -> g0) in the trace")
+    best = solve(PAPER_TW, 0.8, intervals, 8.0, 0.0, False)
+    if best is None:
+        sys.exit("the optimal lap did not solve")
+    lap_s, opt_segs, xs = best
+    print(
+        f"{trace_path}: {len(laps)} laps, best {min(laps):.3f} s, median {np.median(laps):.3f} s; "
+        f"optimal (point mass, paper preset) {lap_s:.3f} s"
+    )
+    print(
+        "| segment | flown s (median) | optimal s | ratio | flown crossing left, up (m), speed (m/s) "
+        "| optimal crossing | flown path m / optimal | flown height m | optimal height m |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for g in range(n):
+        nxt = (g + 1) % n
+        seg = xs[:, g * intervals : (g + 1) * intervals + 1] if g + 1 < n else np.concatenate(
+            [xs[:, g * intervals :], xs[:, :1]], 1
+        )
+        end = seg[:, -1]
+        rel = end[:3] - GATES_M[nxt]
+        opt_path = np.linalg.norm(np.diff(seg[:3], axis=1), axis=0).sum()
+        if not segs_flown[g]:
+            print(f"| g{g} -> g{nxt} | never flown | {opt_segs[g]:.3f} | | | | | | |")
+            continue
+        t, c = np.median(segs_flown[g]), np.median(np.array(cross[nxt]), axis=0)
+        h = np.array(heights[g])
+        print(
+            f"| g{g} -> g{nxt} | {t:.3f} | {opt_segs[g]:.3f} | {t / opt_segs[g]:.2f} "
+            f"| {c[0]:+.2f}, {c[1]:+.2f}, {c[2]:.1f} "
+            f"| {rel @ LEFT[nxt]:+.2f}, {rel[2]:+.2f}, {np.linalg.norm(end[3:6]):.1f} "
+            f"| {np.median(paths[g]):.1f} / {opt_path:.1f} "
+            f"| {np.median(h[:, 0]):.2f}-{np.median(h[:, 1]):.2f} "
+            f"| {seg[2].min():.2f}-{seg[2].max():.2f} |"
+        )
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument(
@@ -323,7 +430,16 @@ def main():
         help="with --rigid-body: the length the rotor commands are held (s; about, the "
         "segment times are free; the simulator's is 0.02)",
     )
+    p.add_argument(
+        "--compare",
+        metavar="TRACE",
+        help="where a flown lap loses time: per segment, the laps in TRACE (sitl eval "
+        "--trace) beside the optimal lap",
+    )
     args = p.parse_args()
+    if args.compare:
+        compare_report(args.compare, args.intervals)
+        return
     if args.rigid_body:
         rigid_body_report(args.intervals, args.control_s)
         return
