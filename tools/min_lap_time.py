@@ -34,7 +34,9 @@ the solver's local optimum); the point mass bounds it from below.
 `sitl eval --trace TRACE` (every episode, broken at respawns), finds the gate passes and
 every complete lap, and prints per gate-to-gate segment the flight's median time beside the
 optimal lap's, with where each crosses the gate (left of the gate's +x and above its
-centre, m), its speed there, the path length and the height range.
+centre, m), its speed there, the path length and the height range; then what the
+environment's reward pays per second for each line (progress at the paper's 0.5 per m, the
+pass term at weights 1, 0.5 and 0), which says whether the reward prefers the faster line.
 
     cargo run --release -p sitl -- eval --ego policies/stage1_rl.blob --trace t.json
     python3 tools/min_lap_time.py --compare t.json
@@ -332,6 +334,43 @@ def flown_passes(positions, respawns, dt):
     return stretches
 
 
+def sampled_lap(segs, xs, dt, laps):
+    """The solved lap's positions every ``dt`` s over ``laps`` repeats (cubic Hermite
+    between the solver's nodes, which hold position and velocity)."""
+    intervals = xs.shape[1] // len(segs)
+    times = np.concatenate([np.cumsum(np.r_[0.0, segs])[k] + np.arange(intervals) * segs[k] / intervals
+                            for k in range(len(segs))] + [[segs.sum()]])  # fmt: skip
+    nodes = np.concatenate([xs, xs[:, :1]], 1)
+    out = []
+    for t in np.arange(0.0, laps * segs.sum(), dt):
+        t %= segs.sum()
+        j = min(np.searchsorted(times, t, "right") - 1, len(times) - 2)
+        h = times[j + 1] - times[j]
+        u = (t - times[j]) / h
+        p0, p1, v0, v1 = nodes[:3, j], nodes[:3, j + 1], nodes[3:, j], nodes[3:, j + 1]
+        out.append(
+            (2 * u**3 - 3 * u**2 + 1) * p0 + (u**3 - 2 * u**2 + u) * h * v0
+            + (-2 * u**3 + 3 * u**2) * p1 + (u**3 - u**2) * h * v1
+        )  # fmt: skip
+    return np.array(out)
+
+
+def reward_rates(positions, dt, half_m):
+    """The environment's progress and pass terms over a flight that starts on g0's plane
+    (sitl::env reward: progress d_{t-1} - d_t to the gate flown to, per m; pass 1 - |p - g|
+    after the passing step), unweighted and per simulated second: (progress, pass, passes)."""
+    target, progress, passed, n = 1, 0.0, 0.0, 0
+    for a, b in zip(positions[:-1], positions[1:]):
+        g = GATES_M[target]
+        progress += np.linalg.norm(a - g) - np.linalg.norm(b - g)
+        if gate_crossing(a, b, target, half_m) is not None:
+            passed += 1.0 - np.linalg.norm(b - g)
+            n += 1
+            target = (target + 1) % len(GATES_M)
+    seconds = (len(positions) - 1) * dt
+    return progress / seconds, passed / seconds, n
+
+
 def compare_report(trace_path, intervals):
     """Per segment: the flown laps of a trace (medians) beside the optimal lap."""
     import json
@@ -342,7 +381,7 @@ def compare_report(trace_path, intervals):
     cross = [[] for _ in range(n)]
     paths = [[] for _ in range(n)]
     heights = [[] for _ in range(n)]
-    laps = []
+    laps, rates = [], []
     for ep in trace["episodes"]:
         dt = ep["dt_s"]
         pos = np.asarray(ep["ego_m"], float)
@@ -357,6 +396,9 @@ def compare_report(trace_path, intervals):
                 stretch = pos[a[5] - 1 : b[5] + 1]
                 paths[g].append(np.linalg.norm(np.diff(stretch, axis=0), axis=1).sum())
                 heights[g].append((stretch[:, 2].min(), stretch[:, 2].max()))
+            if passes and passes[0][1] == 0 and len(passes) > n:
+                start = passes[0][5] - 1
+                rates.append((reward_rates(pos[start : passes[-1][5] + 1], dt, 0.8), dt))
     if not laps:
         sys.exit(f"{trace_path}: no complete lap (g0 -> g0) in the trace")
     best = solve(PAPER_TW, 0.8, intervals, 8.0, 0.0, False)
@@ -393,6 +435,23 @@ def compare_report(trace_path, intervals):
             f"| {np.median(h[:, 0]):.2f}-{np.median(h[:, 1]):.2f} "
             f"| {seg[2].min():.2f}-{seg[2].max():.2f} |"
         )
+    # What the reward pays for each line: the optimum's positions at the simulator's rate
+    # (its corners lie on the opening's edge, which sampling can miss by a centimetre).
+    dt = trace["episodes"][0]["dt_s"]
+    opt = reward_rates(sampled_lap(opt_segs, xs, dt, 5), dt, 0.85)
+    if rates:
+        (prog, pas, _), _ = max(rates, key=lambda r: r[0][2])
+        print(
+            "reward per simulated second (progress 0.5 per m, as the paper; dt-weighted as "
+            "the environment) of the longest stretch from g0 without a respawn:"
+        )
+        for w in (1.0, 0.5, 0.0):
+            # Every term is paid x dt per step: per second, dt x (0.5 m/s of progress + w x pass).
+            flown_r, opt_r = (dt * (0.5 * a + w * b) for a, b in ((prog, pas), opt[:2]))
+            print(
+                f"  pass weight {w}: flown {flown_r:.5f} /s, optimal {opt_r:.5f} /s "
+                f"(optimal / flown {opt_r / flown_r:.3f})"
+            )
 
 
 def main():
