@@ -128,7 +128,10 @@ def solve(tw, half_m, intervals, cruise_mps, swing_m, flying, laps=1):
     xs = np.concatenate(
         [sol.value(states[k])[:, :-1] for k in range(n_gates - n_track, n_gates)], 1
     )
-    return segs.sum(), segs, xs
+    us = np.concatenate(
+        [np.atleast_2d(sol.value(accels[k])) for k in range(n_gates - n_track, n_gates)], 1
+    )
+    return segs.sum(), segs, xs, us
 
 
 def best_of(tw, half_m, intervals, flying, laps):
@@ -208,7 +211,7 @@ def solve_rigid_body(point_mass, control_s, substeps, thrust_share, min_control_
     """The time-optimal repeatable lap of the `paper` rigid body (rotor commands held over
     intervals of about `control_s`, at least `min_control_s`), started from the point-mass
     solution: (lap s, segment times, states, actions) or None."""
-    _, segs_pm, xs_pm = point_mass
+    _, segs_pm, xs_pm, _ = point_mass
     n_track = len(GATES_M)
     pm_intervals = xs_pm.shape[1] // n_track
     opti = ca.Opti()
@@ -404,7 +407,7 @@ def compare_report(trace_path, intervals):
     best = solve(PAPER_TW, 0.8, intervals, 8.0, 0.0, False)
     if best is None:
         sys.exit("the optimal lap did not solve")
-    lap_s, opt_segs, xs = best
+    lap_s, opt_segs, xs, _ = best
     print(
         f"{trace_path}: {len(laps)} laps, best {min(laps):.3f} s, median {np.median(laps):.3f} s; "
         f"optimal (point mass, paper preset) {lap_s:.3f} s"
@@ -454,6 +457,39 @@ def compare_report(trace_path, intervals):
             )
 
 
+def write_line(path, intervals):
+    """Writes the paper preset's time-optimal repeatable lap (point mass) as Rust source, the
+    states the environments can spawn on (sitl::racing_line, `racing_line_fraction`): per
+    node, the gate flown to, position (m), velocity (m/s) and specific thrust (m/s^2, world:
+    the acceleration plus gravity, the direction the drone's body z must point)."""
+    best, laps, tried = best_of(PAPER_TW, 0.8, intervals, False, 1)
+    if best is None:
+        sys.exit("the optimal lap did not solve")
+    lap_s, segs, xs, us = best
+    n = len(GATES_M)
+    rows = []
+    for k in range(n):
+        for i in range(intervals):
+            j = k * intervals + i
+            values = ", ".join(f"{v:.5f}" for v in [*xs[:6, j], *us[:, j]])
+            rows.append(f"    ({(k + 1) % n}, [{values}]),")
+    with open(path, "w") as f:
+        f.write(
+            "//! The time-optimal repeatable lap of the `paper` preset as a point mass (T/W "
+            f"{PAPER_TW:.4f}, 1.6 m\n//! openings): {lap_s:.3f} s, segments "
+            f"{', '.join(f'{t:.3f}' for t in segs)} s, {intervals} nodes a segment.\n"
+            "//! Written by `python3 tools/min_lap_time.py --write-line sitl/src/racing_line/paper.rs`\n"
+            f"//! (the best of the {len(laps)} of {tried} initial guesses that solved); do not edit.\n\n"
+            "/// The lap's nodes in time order from g0: the gate flown to, then position (m),\n"
+            "/// velocity (m/s) and specific thrust (m/s², world frame).\n"
+            "#[rustfmt::skip]\n"
+            f"pub(super) const NODES: [(usize, [f32; 9]); {len(rows)}] = [\n"
+            + "\n".join(rows)
+            + "\n];\n"
+        )
+    print(f"{path}: {len(rows)} nodes of the {lap_s:.3f} s lap")
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument(
@@ -495,7 +531,16 @@ def main():
         help="where a flown lap loses time: per segment, the laps in TRACE (sitl eval "
         "--trace) beside the optimal lap",
     )
+    p.add_argument(
+        "--write-line",
+        metavar="FILE",
+        help="write the paper preset's optimal lap as the environments' racing-line spawn "
+        "states (Rust source: sitl/src/racing_line/paper.rs)",
+    )
     args = p.parse_args()
+    if args.write_line:
+        write_line(args.write_line, args.intervals)
+        return
     if args.compare:
         compare_report(args.compare, args.intervals)
         return

@@ -94,6 +94,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--stage1-fraction", type=float, default=0.0)
     p.add_argument("--replay-fraction", type=float, default=0.0,
                    help="share of respawns from an env's own recent post-pass states")
+    p.add_argument("--racing-line-fraction", type=float, default=0.0,
+                   help="share of the other respawns on the paper preset's time-optimal lap")
     p.add_argument("--reward-weight", action="append", default=[], metavar="TERM=W",
                    help="a reward weight other than the paper's, e.g. crash=1 (repeatable)")
     p.add_argument("--max-std", type=float,
@@ -213,6 +215,7 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
             spawn_speed_mps=args.spawn_speed_mps,
             stage1_fraction=args.stage1_fraction,
             replay_fraction=args.replay_fraction,
+            racing_line_fraction=args.racing_line_fraction,
         )
     weights = {}
     for item in args.reward_weight:

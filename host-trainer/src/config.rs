@@ -278,6 +278,11 @@ pub struct EnvSection {
     /// canonical TOML at 0, so older configs keep their hash).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub replay_fraction: f32,
+    /// Share of the other respawns (neither replayed nor stage-1) on the `paper` preset's
+    /// time-optimal lap (`sitl::env::EnvConfig::racing_line_fraction`). Paper: 0. Default 0
+    /// (left out of the canonical TOML at 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub racing_line_fraction: f32,
 }
 
 /// A falling σ ceiling ([`PpoConfig::max_std_decay`]). Its iterations are absolute, not

@@ -58,6 +58,7 @@ impl TrainConfig {
                 spawn_speed_mps: 8.0,
                 stage1_fraction: 0.2,
                 replay_fraction: 0.0,
+                racing_line_fraction: 0.0,
                 ..EnvSection::default()
             },
             ppo: PpoConfig {
@@ -109,6 +110,7 @@ impl Default for EnvSection {
             spawn_speed_mps: 0.0,
             stage1_fraction: 0.0,
             replay_fraction: 0.0,
+            racing_line_fraction: 0.0,
         }
     }
 }

@@ -128,6 +128,9 @@ fn env_ranges(c: &TrainConfig) -> Result<(), ConfigError> {
     if !(0.0..=1.0).contains(&c.env.replay_fraction) {
         return bad("env.replay_fraction must be in [0, 1]");
     }
+    if !(0.0..=1.0).contains(&c.env.racing_line_fraction) {
+        return bad("env.racing_line_fraction must be in [0, 1]");
+    }
     if !(0.0..=20.0).contains(&c.env.spawn_speed_mps) {
         return bad("env.spawn_speed_mps must be in [0, 20]");
     }

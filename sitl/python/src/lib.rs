@@ -163,7 +163,7 @@ impl RustVecEnv {
     #[pyo3(signature = (*, task, num_envs, preset, seed, spawn, episode_s,
         random_initial_episode_length, opponent, competition, competition_weight, row,
         velocity_scale_mps, spawn_speed_mps, stage1_fraction, replay_fraction=0.0,
-        reward_weights=None))]
+        racing_line_fraction=0.0, reward_weights=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         task: &str,
@@ -181,6 +181,7 @@ impl RustVecEnv {
         spawn_speed_mps: f32,
         stage1_fraction: f32,
         replay_fraction: f32,
+        racing_line_fraction: f32,
         reward_weights: Option<std::collections::HashMap<String, f32>>,
     ) -> PyResult<Self> {
         let race = match task {
@@ -238,6 +239,11 @@ impl RustVecEnv {
                 "replay_fraction {replay_fraction}: expected a share in [0, 1]"
             )));
         }
+        if !(0.0..=1.0).contains(&racing_line_fraction) {
+            return Err(PyValueError::new_err(format!(
+                "racing_line_fraction {racing_line_fraction}: expected a share in [0, 1]"
+            )));
+        }
         let reward = reward_weights_from(reward_weights.unwrap_or_default())?;
         let row = match row {
             None if race => TableRow::G,
@@ -289,6 +295,7 @@ impl RustVecEnv {
             spawn_speed_mps,
             stage1_fraction,
             replay_fraction,
+            racing_line_fraction,
             episode_s,
             random_initial_episode_length,
             reward,

@@ -18,6 +18,7 @@
 //! **The reward** of a step, term by term, is [`reward`]'s (docs/DESIGN.md "Rewards").
 
 use crate::dynamics::Preset;
+use crate::racing_line;
 use crate::referee::{SpawnMode, TrackProgress};
 use crate::world::{Drone, World};
 use firmware_core::Controller;
@@ -63,6 +64,13 @@ pub struct EnvConfig {
     /// 2023's "states from successful gate passes", so the policy trains where its own
     /// flight takes it, at its own speeds. 0 for none (the paper's).
     pub replay_fraction: f32,
+    /// Share of the time-trial respawns that are neither replayed nor stage-1 spawns placed
+    /// on the `paper` preset's time-optimal lap ([`crate::racing_line`]): a random node's
+    /// position, velocity, thrust-aligned attitude and target gate. Shows the policy the
+    /// fast line's states (corners, climbs, dives, 7-14 m/s); the line is the `paper`
+    /// preset's, so with another preset it is a slower line than that preset could fly. 0
+    /// for none (the paper's).
+    pub racing_line_fraction: f32,
     /// Episode length (s) before a time-out. Paper stage 1: 15.
     pub episode_s: f32,
     /// Start every env at a random point of its first episode (RSL-RL's
@@ -140,6 +148,7 @@ impl EnvConfig {
             spawn_speed_mps: 0.0,
             stage1_fraction: 0.0,
             replay_fraction: 0.0,
+            racing_line_fraction: 0.0,
             episode_s: 15.0,
             random_initial_episode_length: true,
             reward: RewardWeights::default(),
@@ -390,6 +399,7 @@ impl VecEnv {
             max_speed_mps: self.config.spawn_speed_mps,
             stage1_fraction: self.config.stage1_fraction,
             replay_fraction: self.config.replay_fraction,
+            racing_line_fraction: self.config.racing_line_fraction,
             race: self.race.is_some(),
         }
     }
@@ -660,6 +670,7 @@ struct SpawnRule {
     max_speed_mps: f32,
     stage1_fraction: f32,
     replay_fraction: f32,
+    racing_line_fraction: f32,
     race: bool,
 }
 
@@ -668,7 +679,9 @@ struct SpawnRule {
 /// stage-1 spawn with probability `stage1_fraction`, otherwise `mode`'s, moving along its
 /// heading at a speed drawn from [0, `max_speed_mps`] when that is positive. The previous
 /// action zeroed. Otherwise, with probability `replay_fraction`, the state after one of the
-/// env's recent gate passes, with that step's previous action.
+/// env's recent gate passes, with that step's previous action; and of the spawns that are
+/// neither replayed nor stage-1, a share `racing_line_fraction` is a random node of the
+/// time-optimal lap (moving as the optimum does there).
 fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut Slot) {
     if !rule.race && rule.replay_fraction > 0.0 && slot.rng.random::<f32>() < rule.replay_fraction {
         if let Some((drone, previous_action)) = slot.passes.draw(&mut slot.rng) {
@@ -682,9 +695,18 @@ fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut
     let line = progress.line();
     let stage1 =
         !rule.race && rule.stage1_fraction > 0.0 && slot.rng.random::<f32>() < rule.stage1_fraction;
+    let on_line = !rule.race
+        && !stage1
+        && rule.racing_line_fraction > 0.0
+        && slot.rng.random::<f32>() < rule.racing_line_fraction;
     let mode = if stage1 { SpawnMode::Stage1 } else { rule.mode };
-    let [mut spawn, opponent] = mode.draw(&world.track, line, &mut slot.rng);
-    if rule.max_speed_mps > 0.0 && !stage1 && !rule.race {
+    let [mut spawn, opponent] = if on_line {
+        let s = racing_line::paper_spawn(slot.rng.random_range(0..racing_line::paper_nodes()));
+        [s, s]
+    } else {
+        mode.draw(&world.track, line, &mut slot.rng)
+    };
+    if rule.max_speed_mps > 0.0 && !stage1 && !on_line && !rule.race {
         let speed = slot.rng.random_range(0.0..rule.max_speed_mps);
         let forward = spawn.state.attitude.rotate(Vec3::new(1.0, 0.0, 0.0));
         spawn.state.velocity_mps = forward.scale(speed);

@@ -45,6 +45,7 @@ def make_vec_env(
     spawn_speed_mps: float = 0.0,
     stage1_fraction: float = 0.0,
     replay_fraction: float = 0.0,
+    racing_line_fraction: float = 0.0,
     reward_weights: dict[str, float] | None = None,
 ) -> OvertakeVecEnv:
     """``num_envs`` auto-resetting environments of a time trial or a race.
@@ -73,6 +74,9 @@ def make_vec_env(
         stage1_fraction: time trial: share of respawns at the paper's fixed start.
         replay_fraction: time trial: share of respawns from the state right after one of
             the env's own recent gate passes (when it has one; Song et al. 2023).
+        racing_line_fraction: time trial: share of the other respawns (neither replayed nor
+            at the fixed start) on the ``paper`` preset's time-optimal lap, moving as the
+            optimum does there (``tools/min_lap_time.py``; only its states are used).
         reward_weights: the reward's weights that differ from the paper's, by term name
             (``progress`` 0.5, ``command`` 0.0005, ``smoothness`` 0.0002, ``pass`` 1,
             ``crash`` 5; e.g. ``{"crash": 1.0}``, as ``[reward]`` in host-trainer's configs).
@@ -98,6 +102,7 @@ def make_vec_env(
         spawn_speed_mps=spawn_speed_mps,
         stage1_fraction=stage1_fraction,
         replay_fraction=replay_fraction,
+        racing_line_fraction=racing_line_fraction,
         reward_weights=reward_weights,
     )
     return OvertakeVecEnv(env, task=task)

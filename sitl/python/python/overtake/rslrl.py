@@ -68,6 +68,7 @@ class VecEnv(_RslRlVecEnv):
             "spawn_speed_mps": 0.0,
             "stage1_fraction": 0.0,
             "replay_fraction": 0.0,
+            "racing_line_fraction": 0.0,
             "reward_weights": None,
         }
         unknown = set(make_vec_env_kwargs) - set(kwargs)
