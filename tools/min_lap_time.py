@@ -483,6 +483,7 @@ def write_line(path, intervals):
             "/// The lap's nodes in time order from g0: the gate flown to, then position (m),\n"
             "/// velocity (m/s) and specific thrust (m/s², world frame).\n"
             "#[rustfmt::skip]\n"
+            "#[allow(clippy::excessive_precision)] // five decimals, as written\n"
             f"pub(super) const NODES: [(usize, [f32; 9]); {len(rows)}] = [\n"
             + "\n".join(rows)
             + "\n];\n"

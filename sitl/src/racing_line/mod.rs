@@ -47,7 +47,8 @@ pub fn paper_spawn(index: usize) -> SpawnPoint {
 /// (world x when `forward` is along `up` or zero; identity when `up` is zero).
 pub fn attitude_along(up: Vec3, forward: Vec3) -> Quat {
     let n = up.norm();
-    if !(n > 1e-6) {
+    // Also refuses a NaN thrust (every comparison with NaN is false).
+    if n.is_nan() || n <= 1e-6 {
         return Quat::IDENTITY;
     }
     let z = up.scale(1.0 / n);

@@ -6,6 +6,7 @@
 /// The lap's nodes in time order from g0: the gate flown to, then position (m),
 /// velocity (m/s) and specific thrust (m/s², world frame).
 #[rustfmt::skip]
+#[allow(clippy::excessive_precision)] // five decimals, as written
 pub(super) const NODES: [(usize, [f32; 9]); 240] = [
     (1, [0.00000, -0.00000, 0.49139, 11.28452, 8.24001, -0.00000, -0.19926, -0.43864, 15.86868]),
     (1, [0.28034, 0.20462, 0.49326, 11.27957, 8.22911, 0.15055, -0.59560, -1.31110, 15.81055]),
