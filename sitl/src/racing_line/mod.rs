@@ -9,7 +9,9 @@
 //! Only the states are used: no action of the optimum is imitated, and the reward is the
 //! environment's own.
 //!
-//! The line is the point-mass optimum of `tools/min_lap_time.py` (`paper.rs`, generated):
+//! The line is the point-mass optimum of `tools/min_lap_time.py` (`paper.rs`, generated)
+//! through the middle 1.4 m of each opening (7.149 s; through the full 1.6 m, 7.099 s, it
+//! grazes the frames, and a spawn just before a gate would crash whatever the policy did):
 //! at each node the position, the velocity and the specific thrust. A spawn takes a node's
 //! position and velocity, an attitude whose body z points along the thrust (what the point
 //! mass needs to follow the line) and whose body x points along the velocity's component
@@ -146,16 +148,17 @@ mod tests {
             // to it or has just reached it (it is then on that gate's plane).
             assert!(b.target_gate == a.target_gate || b.target_gate == (a.target_gate + 1) % 6);
             if b.target_gate != a.target_gate {
-                let g = track.gate(a.target_gate);
-                let rel = b.state.position_m - g.center_m;
+                // On the plane, inside the opening with the line's 0.1 m margin (the gate
+                // test is strict at 0.8 m: a line through the frame's edge would crash).
+                let rel = track.gate(a.target_gate).to_gate_frame(b.state.position_m);
                 assert!(
-                    rel.dot(g.forward()).abs() < 1e-3,
+                    rel.x.abs() < 1e-3,
                     "node {}: off g{}'s plane",
                     i + 1,
                     a.target_gate
                 );
-                let across = rel - g.forward().scale(rel.dot(g.forward()));
-                assert!(across.x.abs().max(across.y.abs()).max(across.z.abs()) < 0.8 * 1.5 + 1e-3);
+                let inside = rel.y.abs() < 0.7 + 1e-3 && rel.z.abs() < 0.7 + 1e-3;
+                assert!(inside, "node {}: crosses at {rel:?}", i + 1);
             }
         }
         // Six gate changes in a lap, starting on g0's plane flying to g1.
