@@ -69,6 +69,10 @@ def cargo(package: str, *args: str) -> str:
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    return parser().parse_args(argv)
+
+
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", type=Path, required=True, help="run directory (created)")
     p.add_argument("--row", default="A", choices=["A", "E", "F", "G"], help="Table 1 row")
@@ -124,12 +128,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "by --seed and the iteration). The arguments that shape training must be "
                         "the run's own (--iterations, --checkpoint-every, --threads and the "
                         "referee's and parity check's may change)")
-    return p.parse_args(argv)
+    return p
 
 
-#: Arguments a resumed run may change: how long it runs and how often it reports.
+#: Arguments a resumed run may change: how long it runs, how often it reports, and where
+#: its directory is named from (a relative or moved --out is the same run).
 RESUMABLE_CHANGES = {
-    "iterations", "checkpoint_every", "resume", "threads",
+    "iterations", "checkpoint_every", "resume", "threads", "out",
     "eval_every", "eval_episodes", "eval_seed", "parity_envs", "parity_steps",
 }  # fmt: skip
 
@@ -163,17 +168,25 @@ def load_checkpoint(args: argparse.Namespace) -> dict[str, Any]:
         state = torch.load(path, weights_only=False)
     except Exception as e:  # a truncated or foreign file
         sys.exit(f"error: --resume: {path} is not a readable checkpoint: {e}")
-    saved, now = state["arguments"], run_arguments(args)
+    if not isinstance(state, dict) or not isinstance(state.get("arguments"), dict):
+        sys.exit(f"error: --resume: {path} is not a train_rslrl checkpoint")
+    # An argument the checkpoint predates had its default then.
+    defaults = parser()
+    saved = {k: v for k, v in state["arguments"].items() if k not in RESUMABLE_CHANGES}
+    now = run_arguments(args)
+    for k in now.keys() - saved.keys():
+        d = defaults.get_default(k)
+        saved[k] = str(d) if isinstance(d, Path) else d
     changed = sorted(k for k in saved.keys() | now.keys() if saved.get(k) != now.get(k))
     if changed:
         sys.exit(
             "error: --resume with different arguments than the run's own: "
             + ", ".join(f"{k} {saved.get(k)!r} -> {now.get(k)!r}" for k in changed)
         )
-    if state["iteration"] >= args.iterations:
+    if state["iteration"] > args.iterations:
         sys.exit(
-            f"error: --resume: the checkpoint is at iteration {state['iteration']}, "
-            f"--iterations {args.iterations} leaves nothing to train"
+            f"error: --resume: the checkpoint is at iteration {state['iteration']}, past "
+            f"--iterations {args.iterations}"
         )
     return state
 
@@ -294,6 +307,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.max_std_decay is not None and args.max_std is None:
         sys.exit("error: --max-std-decay lowers --max-std, which is not given")
+    # The cargo steps run in the repository: paths given relative to here must not move.
+    args.out = args.out.resolve()
+    args.opponent = args.opponent.resolve()
+    if args.init_blob:
+        args.init_blob = args.init_blob.resolve()
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)
     if args.velocity_scale_mps is None:
@@ -301,6 +319,11 @@ def main(argv: list[str] | None = None) -> int:
             overtake.Policy(args.init_blob).velocity_scale_mps if args.init_blob else 3.0
         )
     resumed = load_checkpoint(args) if args.resume else None
+    if not resumed and (args.out / "checkpoint.pt").exists():
+        sys.exit(
+            f"error: {args.out} holds an earlier run's checkpoint: --resume it, or choose "
+            "another --out (a fresh run here would mix its metrics with the earlier run's)"
+        )
     start_iteration = resumed["iteration"] if resumed else 0
     args.out.mkdir(parents=True, exist_ok=True)
 
@@ -417,7 +440,9 @@ def main(argv: list[str] | None = None) -> int:
         return losses
 
     runner.alg.update = update_and_log
-    runner.learn(args.iterations - start_iteration, init_at_random_ep_len=True)
+    # A run killed after its last update but before its blob resumes straight to the export.
+    if args.iterations > start_iteration:
+        runner.learn(args.iterations - start_iteration, init_at_random_ep_len=True)
     wall = clock["last"] - clock["start"] - clock["eval"]
     samples = args.iterations * samples_per_iteration
     if args.checkpoint_every:

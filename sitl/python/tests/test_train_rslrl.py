@@ -21,7 +21,7 @@ def load_script():
     return module
 
 
-def test_a_killed_run_resumes_from_its_checkpoint(tmp_path):
+def test_a_killed_run_resumes_from_its_checkpoint(tmp_path, monkeypatch):
     script = load_script()
     out = tmp_path / "run"
     small = ["--out", str(out), "--num-envs", "16", "--steps-per-env", "8",
@@ -35,12 +35,17 @@ def test_a_killed_run_resumes_from_its_checkpoint(tmp_path):
 
     with pytest.raises(SystemExit, match="seed 1 -> 2"):
         script.main(small + ["--iterations", "3", "--resume", "--seed", "2"])
-    with pytest.raises(SystemExit, match="nothing to train"):
-        script.main(small + ["--iterations", "2", "--resume"])
+    with pytest.raises(SystemExit, match="at iteration 2, past --iterations 1"):
+        script.main(small + ["--iterations", "1", "--resume"])
     with pytest.raises(SystemExit, match="nothing to resume"):
         script.main(small[2:] + ["--out", str(tmp_path / "none"), "--resume"])
+    with pytest.raises(SystemExit, match="holds an earlier run's checkpoint"):
+        script.main(small + ["--iterations", "2"])
 
-    assert script.main(small + ["--iterations", "3", "--resume"]) == 0
+    # Another spelling of the same directory is the same run.
+    relative = ["--out", str(Path("..") / out.name)]
+    monkeypatch.chdir(out)
+    assert script.main(relative + small[2:] + ["--iterations", "3", "--resume"]) == 0
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert [r["iteration"] for r in rows] == [1, 2, 3]
     assert [r["samples"] for r in rows] == [128, 256, 384]
@@ -50,3 +55,21 @@ def test_a_killed_run_resumes_from_its_checkpoint(tmp_path):
     # The third update started from the second's networks and Adam moments, so it moved
     # them on from there (the std is the first parameter an update changes).
     assert at_three["optimizer"]["state"][0]["step"] == at_two["optimizer"]["state"][0]["step"] + 5 * 4
+
+
+def test_a_run_killed_after_its_last_update_finishes_on_resume(tmp_path):
+    """The final checkpoint comes before the export: resuming at the budget exports,
+    checks and referees without training, its wall-clock the run's own."""
+    script = load_script()
+    out = tmp_path / "run"
+    small = ["--out", str(out), "--num-envs", "16", "--steps-per-env", "8", "--iterations", "1",
+             "--eval-episodes", "1", "--parity-envs", "8", "--parity-steps", "20"]  # fmt: skip
+    assert script.main(small) == 0
+    (out / "policy.blob").unlink()
+    before = json.loads((out / "summary.json").read_text())
+    assert script.main(small + ["--resume"]) == 0
+    assert (out / "policy.blob").exists()
+    after = json.loads((out / "summary.json").read_text())
+    assert after["iterations"] == 1 and abs(after["wall_s"] - before["wall_s"]) < 1.0
+    rows = (out / "metrics.jsonl").read_text().splitlines()
+    assert len(rows) == 1
