@@ -445,7 +445,8 @@ def main(argv: list[str] | None = None) -> int:
         runner.learn(args.iterations - start_iteration, init_at_random_ep_len=True)
     wall = clock["last"] - clock["start"] - clock["eval"]
     samples = args.iterations * samples_per_iteration
-    if args.checkpoint_every:
+    # The last update wrote it already when the budget is a multiple of the interval.
+    if args.checkpoint_every and args.iterations % args.checkpoint_every:
         checkpoint(args.iterations, wall)
     print(f"trained {args.iterations} iterations, {samples / 1e6:.1f} M samples in {wall:.0f} s "
           f"({samples / wall / 1e3:.1f} k samples/s end to end)")  # fmt: skip
