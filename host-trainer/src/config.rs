@@ -370,6 +370,14 @@ pub struct PpoConfig {
     /// hash.)
     #[serde(default, skip_serializing_if = "UpdateKind::is_default")]
     pub update: UpdateKind,
+    /// Train on every sample's mirror image as well (`sitl::mirror`: the figure-8 reflected
+    /// in x = 0 is itself, its halves swapped): the reflected observation with the
+    /// renumbered motor command, the sample's return and advantage (symmetry data
+    /// augmentation, as RSL-RL's `symmetry_cfg`). The batch doubles; the env-steps do not.
+    /// Feed-forward rows only. Paper: false. Default false (left out of the canonical TOML
+    /// at its default, as `min_learning_rate`).
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub mirror_augmentation: bool,
 }
 
 /// Which implementation takes the PPO steps of the feed-forward networks.

@@ -134,6 +134,8 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
     /// Turns a rollout into training samples: old log-probabilities, means and values from
     /// one batched forward pass without autodiff, time-outs bootstrapped with γ·V of the
     /// step's observation (RSL-RL), GAE returns, advantages normalised over the rollout.
+    /// A rollout with mirror images ([`Rollout::mirrored`], feed-forward networks) gives a
+    /// batch of twice its samples: the flown ones, then their images.
     ///
     /// Recurrent networks run over the window from the rollout's stored states; the batch's
     /// [`Sequences::critic_next`] is the critic's state for the next window.
@@ -141,10 +143,23 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
         let actor = self.actor.valid();
         let critic = self.critic.valid();
         let device = self.device.clone().without_autodiff();
+        // Symmetry augmentation: the mirror images follow the samples, with the sample's
+        // return, advantage and behaviour log-probability.
+        let mirrored = !Self::RECURRENT
+            && !r.mirror_obs.is_empty()
+            && r.mirror_obs.len() == r.obs.len()
+            && r.mirror_actions.len() == r.actions.len();
+        let both = |a: &[f32], b: &[f32]| {
+            if mirrored {
+                [a, b].concat()
+            } else {
+                a.to_vec()
+            }
+        };
         let mut batch = Batch {
             obs_dim: r.obs_dim,
-            obs: r.obs.clone(),
-            actions: r.actions.clone(),
+            obs: both(&r.obs, &r.mirror_obs),
+            actions: both(&r.actions, &r.mirror_actions),
             old_log_prob: Vec::new(),
             old_mean: Vec::new(),
             old_std: [1.0; ACTION_DIM],
@@ -153,51 +168,60 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             advantages: Vec::new(),
             sequence: Self::RECURRENT.then(|| Sequences::of(r)),
         };
-        let (old_mean, old_values, last_values, critic_next) = match self.fused_outputs(r, p) {
-            Some((mean, values, last)) => (mean, values, last, Vec::new()),
-            None => {
-                let (mean, _, _) = actor.rollout_outputs(&batch, None, &device);
-                let (values, last, next) =
-                    critic.rollout_outputs(&batch, Some(&r.last_obs), &device);
-                (mean, values, last, next)
-            }
-        };
+        let (old_mean, old_values, last_values, critic_next) =
+            match self.fused_outputs(&batch.obs, &r.last_obs, p) {
+                Some((mean, values, last)) => (mean, values, last, Vec::new()),
+                None => {
+                    let (mean, _, _) = actor.rollout_outputs(&batch, None, &device);
+                    let (values, last, next) =
+                        critic.rollout_outputs(&batch, Some(&r.last_obs), &device);
+                    (mean, values, last, next)
+                }
+            };
         let std = actor.std();
         let old_std: [f32; ACTION_DIM] =
             core::array::from_fn(|k| std.get(k).copied().unwrap_or(1.0));
-        let old_log_prob = r
+        // An image's action was drawn by the reflected policy, with the probability the
+        // flown action had: that is its behaviour log-probability (the ratio's denominator;
+        // RSL-RL's symmetry augmentation repeats it too). Its mean and value are the old
+        // networks' own on the reflected observation (the KL and the value clip).
+        let n = r.rewards.len();
+        let flown_log_prob: Vec<f32> = r
             .actions
             .chunks_exact(ACTION_DIM)
             .zip(old_mean.chunks_exact(ACTION_DIM))
             .map(|(a, m)| gaussian_log_prob(a, m, &old_std))
             .collect();
+        let old_log_prob = both(&flown_log_prob, &flown_log_prob);
+        // GAE over the flown samples (the first `n` rows).
+        let flown_values = old_values.get(..n).unwrap_or(&old_values);
         let rewards: Vec<f32> = r
             .rewards
             .iter()
             .zip(&r.timeouts)
-            .zip(&old_values)
+            .zip(flown_values)
             .map(|((&rw, &to), &v)| if to { rw + p.gamma * v } else { rw })
             .collect();
         let returns = gae(
             &rewards,
             &r.dones,
-            &old_values,
+            flown_values,
             &last_values,
             p.gamma,
             p.lambda,
         );
         let mut advantages: Vec<f32> = returns
             .iter()
-            .zip(&old_values)
+            .zip(flown_values)
             .map(|(g, v)| g - v)
             .collect();
-        let n = advantages.len().max(1) as f64;
-        let mean = advantages.iter().map(|&a| f64::from(a)).sum::<f64>() / n;
+        let count = advantages.len().max(1) as f64;
+        let mean = advantages.iter().map(|&a| f64::from(a)).sum::<f64>() / count;
         let var = advantages
             .iter()
             .map(|&a| (f64::from(a) - mean).powi(2))
             .sum::<f64>()
-            / (n - 1.0).max(1.0);
+            / (count - 1.0).max(1.0);
         let sd = var.sqrt() + 1e-8;
         for a in &mut advantages {
             *a = ((f64::from(*a) - mean) / sd) as f32;
@@ -210,22 +234,28 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             old_mean,
             old_std,
             old_values,
-            returns,
-            advantages,
+            returns: both(&returns, &returns),
+            advantages: both(&advantages, &advantages),
             ..batch
         }
     }
 
-    /// [`Learner::prepare`]'s means, values and bootstrap values from the fused forward pass
-    /// ([`FusedLearner::rollout_outputs`]) where the update is fused, else `None`.
-    fn fused_outputs(&self, r: &Rollout, p: &PpoConfig) -> Option<(Vec<f32>, Vec<f32>, Vec<f32>)> {
+    /// [`Learner::prepare`]'s means and values of `obs` and bootstrap values of `last_obs`
+    /// from the fused forward pass ([`FusedLearner::rollout_outputs`]) where the update is
+    /// fused, else `None`.
+    fn fused_outputs(
+        &self,
+        obs: &[f32],
+        last_obs: &[f32],
+        p: &PpoConfig,
+    ) -> Option<(Vec<f32>, Vec<f32>, Vec<f32>)> {
         if Self::RECURRENT || p.update != UpdateKind::Fused {
             return None;
         }
         let this: &dyn std::any::Any = self;
         let mlp = this.downcast_ref::<Learner<Actor, Critic>>()?;
         let mut fused = FusedLearner::new(&mlp.actor, &mlp.critic, None);
-        Some(fused.rollout_outputs(&r.obs, &r.last_obs))
+        Some(fused.rollout_outputs(obs, last_obs))
     }
 
     /// The gradient of the actor's loss (clipped surrogate minus the entropy bonus) over all

@@ -46,6 +46,15 @@ pub struct Rollout {
     /// Recurrent policies: the policy's state in every env, carried from one window to the
     /// next by the rollout (zeroed at episode ends, as the controller does); not cleared.
     pub memory: Vec<firmware_core::policy::PolicyState>,
+    /// Also record every step's mirror image (`sitl::mirror`) for symmetry augmentation:
+    /// set by the owner of the buffer, not cleared.
+    pub mirrored: bool,
+    /// With `mirrored`: the reflected observations at the start of each step, laid out as
+    /// `obs`.
+    pub mirror_obs: Vec<f32>,
+    /// With `mirrored`: the actions with their motors renumbered by the reflection, laid
+    /// out as `actions`.
+    pub mirror_actions: Vec<f32>,
 }
 
 impl Rollout {
@@ -72,13 +81,16 @@ impl Rollout {
         self.timeouts.clear();
         self.last_obs.clear();
         self.actor_h0.clear();
+        self.mirror_obs.clear();
+        self.mirror_actions.clear();
     }
 }
 
 /// Collects `steps` steps of every env of `env` into `rollout` (cleared first): actions are
 /// `policy`'s Gaussian means (firmware-core's network, the deployed code, in parallel over
 /// envs) plus `std`-scaled noise drawn serially from `noise_rng`. `on_step` sees each step's
-/// rewards and dones.
+/// rewards and dones. With `rollout.mirrored`, each step's mirror image is recorded too (an
+/// environment whose track has no mirror symmetry is refused).
 pub fn collect_rollout(
     env: &mut VecEnv,
     policy: &Policy<'_>,
@@ -109,7 +121,22 @@ pub fn collect_rollout(
     }
     let mut actions = vec![0.0f32; n * ACTION_DIM];
     let mut noise = vec![0.0f32; n * ACTION_DIM];
+    let mut mirrored = Vec::new();
+    let mirror = if rollout.mirrored {
+        Some(
+            env.mirror()
+                .map_err(|e| TrainError::Unsupported(format!("mirror augmentation: {e}")))?
+                .clone(),
+        )
+    } else {
+        None
+    };
     for _ in 0..steps {
+        if mirror.is_some() {
+            env.mirrored_observations(&mut mirrored)
+                .map_err(|e| TrainError::Unsupported(format!("mirror augmentation: {e}")))?;
+            rollout.mirror_obs.extend_from_slice(&mirrored);
+        }
         let obs = env.observations();
         rollout.obs.extend_from_slice(obs);
         for z in &mut noise {
@@ -137,6 +164,12 @@ pub fn collect_rollout(
                 }
             });
         rollout.actions.extend_from_slice(&actions);
+        if let Some(m) = &mirror {
+            for a in actions.chunks_exact(ACTION_DIM) {
+                let a: [f32; ACTION_DIM] = core::array::from_fn(|k| a[k]);
+                rollout.mirror_actions.extend_from_slice(&m.motors(&a));
+            }
+        }
         env.step(&actions)
             .map_err(|e| TrainError::Unsupported(e.to_string()))?;
         rollout.rewards.extend_from_slice(env.rewards());

@@ -253,9 +253,11 @@ impl Loop {
             .seed
             .wrapping_add(u64::from(state.iteration).wrapping_mul(0x9e37_79b9_7f4a_7c15));
         let env = config.make_env(env_seed)?;
+        let mut rollout = Rollout::new(env.num_envs(), env.obs_dim());
+        rollout.mirrored = config.ppo.mirror_augmentation;
         Ok(Self {
             arch: config.architecture()?,
-            rollout: Rollout::new(env.num_envs(), env.obs_dim()),
+            rollout,
             episodes: EpisodeLog::new(env.num_envs()),
             env,
         })

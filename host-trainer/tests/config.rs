@@ -165,3 +165,33 @@ fn the_sigma_ceiling_falls_linearly_between_its_iterations() {
         );
     }
 }
+
+#[test]
+fn mirror_augmentation_is_a_feed_forward_option_that_keeps_old_hashes() {
+    let on =
+        TrainConfig::parse(&STAGE1.replacen("init_std", "mirror_augmentation = true\ninit_std", 1))
+            .unwrap();
+    assert!(on.ppo.mirror_augmentation);
+    assert!(!TrainConfig::parse(STAGE1).unwrap().ppo.mirror_augmentation);
+    // Off is the default and left out of the canonical TOML: configs written before the
+    // option hash as they did; on, it is part of the hash.
+    let off = TrainConfig::parse(&STAGE1.replacen(
+        "init_std",
+        "mirror_augmentation = false\ninit_std",
+        1,
+    ))
+    .unwrap();
+    assert_eq!(off.hash(), TrainConfig::parse(STAGE1).unwrap().hash());
+    assert_ne!(on.hash(), off.hash());
+    let round_trip = TrainConfig::parse(&toml::to_string(&on).unwrap()).unwrap();
+    assert_eq!(round_trip, on);
+    // Recurrent rows are refused by name.
+    let g = include_str!("../configs/stage2_G.toml");
+    let e = TrainConfig::parse(&g.replacen("[ppo]\n", "[ppo]\nmirror_augmentation = true\n", 1))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("mirror_augmentation") && e.contains("recurrent"),
+        "{e}"
+    );
+}

@@ -34,6 +34,7 @@ fn params() -> PpoConfig {
         init_std: 0.5,
         init_hover: false,
         update: UpdateKind::Fused,
+        mirror_augmentation: false,
     }
 }
 
@@ -321,4 +322,118 @@ fn the_std_ceiling_holds_against_the_entropy_bonus() {
             "fused {fused}: {capped:?}"
         );
     }
+}
+
+/// Symmetry augmentation (`[ppo] mirror_augmentation`): the batch is the plain batch
+/// followed by the mirror images, each image with the old networks' own mean and value on
+/// the reflected observation, and the flown sample's return, advantage and behaviour
+/// log-probability; the flown half is exactly the batch without augmentation.
+#[test]
+fn a_mirrored_batch_is_the_plain_batch_then_its_images() {
+    use firmware_core::policy::Policy;
+    use host_trainer::rollout::{Rollout, collect_rollout};
+    use sitl::env::{EnvConfig, VecEnv};
+    let device = Device::flex().autodiff();
+    let arch = Architecture::table1(TableRow::A);
+    let mut rng = init_rng(9);
+    let actor = Actor::fresh(&arch, 0.3, &mut rng, &device);
+    let critic = Critic::fresh(&arch, &mut rng, &device);
+    let learner = Learner::new(actor, critic, 1e-3, device.clone());
+    let payload = learner.actor.payload();
+    let policy = Policy::from_payload(&arch, &payload).unwrap();
+    let std = learner.actor.std();
+    let (envs, steps) = (32, 20);
+    let p = PpoConfig {
+        steps_per_env: steps,
+        gamma: 0.99,
+        lambda: 0.95,
+        ..params()
+    };
+    let mut batches = Vec::new();
+    for mirrored in [false, true] {
+        let mut env = VecEnv::time_trial(EnvConfig::paper_along_track(envs, 5));
+        let mut rollout = Rollout::new(envs, 17);
+        rollout.mirrored = mirrored;
+        let mut noise = ChaCha8Rng::seed_from_u64(1);
+        collect_rollout(
+            &mut env,
+            &policy,
+            &std,
+            steps,
+            &mut noise,
+            &mut rollout,
+            |_, _| {},
+        )
+        .unwrap();
+        assert_eq!(
+            rollout.mirror_obs.len(),
+            if mirrored { rollout.obs.len() } else { 0 }
+        );
+        let batch = learner.prepare(&rollout, &p);
+        batches.push((rollout, batch));
+    }
+    let (_, plain) = &batches[0];
+    let (rollout, aug) = &batches[1];
+    let n = envs * steps;
+    assert_eq!(plain.len(), n);
+    assert_eq!(aug.len(), 2 * n);
+    assert_eq!(&aug.obs[..n * 17], &plain.obs[..]);
+    assert_eq!(&aug.obs[n * 17..], &rollout.mirror_obs[..]);
+    assert_eq!(&aug.actions[n * 4..], &rollout.mirror_actions[..]);
+    for (name, a, b) in [
+        ("returns", &aug.returns[..n], &plain.returns[..]),
+        ("advantages", &aug.advantages[..n], &plain.advantages[..]),
+        (
+            "returns of the images",
+            &aug.returns[n..],
+            &plain.returns[..],
+        ),
+        (
+            "advantages of the images",
+            &aug.advantages[n..],
+            &plain.advantages[..],
+        ),
+        ("old values", &aug.old_values[..n], &plain.old_values[..]),
+        (
+            "old log-probabilities",
+            &aug.old_log_prob[..n],
+            &plain.old_log_prob[..],
+        ),
+    ] {
+        let worst = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-5, "{name}: {worst}");
+    }
+    // The images' old outputs are the networks' on the reflected observations.
+    let x = Tensor::from_data(
+        TensorData::new(rollout.mirror_obs.clone(), [n, 17]),
+        &device,
+    );
+    let mean = values(learner.actor.mean(x.clone()));
+    let value = values(learner.critic.value(x));
+    let std4: [f32; 4] = core::array::from_fn(|k| std[k]);
+    for i in 0..n {
+        let m = &mean[i * 4..i * 4 + 4];
+        assert!((aug.old_values[n + i] - value[i]).abs() < 1e-4);
+        for (old, now) in aug.old_mean[(n + i) * 4..(n + i) * 4 + 4].iter().zip(m) {
+            assert!((old - now).abs() < 1e-4);
+        }
+        // An image's behaviour log-probability is the flown action's: the reflected
+        // policy drew it with that probability, whatever the policy does at the image.
+        let flown = gaussian_log_prob(
+            &rollout.actions[i * 4..i * 4 + 4],
+            &plain.old_mean[i * 4..i * 4 + 4],
+            &std4,
+        );
+        assert!((aug.old_log_prob[n + i] - flown).abs() < 1e-3, "{i}");
+        assert!(
+            (aug.old_log_prob[n + i] - plain.old_log_prob[i]).abs() < 1e-6,
+            "{i}"
+        );
+    }
+    // The images differ from the samples (the reflection is not the identity).
+    assert!(aug.obs[n * 17..] != aug.obs[..n * 17]);
 }

@@ -597,3 +597,48 @@ fn racing_line_spawns_are_nodes_of_the_optimal_lap() {
     assert!(stage1 > 16 && stage1 < 48, "{stage1} stage-1 spawns of 64");
     assert_eq!(on_line(&mixed) + stage1, 64);
 }
+
+/// The mirror images a learner trains on (`VecEnv::mirrored_observations`), against the
+/// reflection worked out by hand for the figure-8 (sitl::mirror): attitude (w, x, −y, −z),
+/// body velocity (−vx, vy, vz), body rates (ωx, −ωy, −ωz), the previous action's motors
+/// renumbered 0 ↔ 1, 2 ↔ 3, and the gate seen from the drone with x kept and exactly one
+/// of y, z negated (the paper's frames of g1 and g2 are upside down, their mirrors g4 and g5
+/// upright).
+#[test]
+fn mirrored_observations_are_the_reflection_by_hand() {
+    let mut env = VecEnv::time_trial(EnvConfig::paper_along_track(64, 11));
+    let mut actions = vec![0.0f32; 64 * 4];
+    for (i, a) in actions.iter_mut().enumerate() {
+        *a = 0.4 + 0.3 * ((i * 7 % 11) as f32 / 11.0 - 0.5);
+    }
+    let mut mirrored = Vec::new();
+    let mut flips = [0usize; 2];
+    for _ in 0..5 {
+        env.step(&actions).unwrap();
+        env.mirrored_observations(&mut mirrored).unwrap();
+        assert_eq!(mirrored.len(), env.observations().len());
+        for (o, m) in env
+            .observations()
+            .chunks_exact(OBS_DIM)
+            .zip(mirrored.chunks_exact(OBS_DIM))
+        {
+            let close = |a: f32, b: f32| (a - b).abs() < 1e-5;
+            assert!(close(m[0], o[0]), "gate x: {o:?} {m:?}");
+            let y_flipped = close(m[1], -o[1]) && close(m[2], o[2]);
+            let z_flipped = close(m[1], o[1]) && close(m[2], -o[2]);
+            assert!(y_flipped || z_flipped, "gate y, z: {o:?} {m:?}");
+            flips[usize::from(z_flipped && !y_flipped)] += 1;
+            let want = [
+                o[3], o[4], -o[5], -o[6], // attitude
+                -o[7], o[8], o[9], // body velocity
+                o[10], -o[11], -o[12], // body rates
+                o[14], o[13], o[16], o[15], // previous action
+            ];
+            for (k, (w, g)) in want.iter().zip(&m[3..]).enumerate() {
+                assert!(close(*w, *g), "value {}: {w} vs {g}", k + 3);
+            }
+        }
+    }
+    // Both kinds of gate pair were seen.
+    assert!(flips[0] > 0 && flips[1] > 0, "{flips:?}");
+}

@@ -140,6 +140,7 @@ impl Default for PpoConfig {
             init_std: 1.0,
             init_hover: false,
             update: UpdateKind::Fused,
+            mirror_augmentation: false,
         }
     }
 }

@@ -186,6 +186,12 @@ fn ppo(c: &TrainConfig) -> Result<(), ConfigError> {
             );
         }
     }
+    if p.mirror_augmentation && ('E'..='G').contains(&c.run.row) {
+        return bad(format!(
+            "ppo.mirror_augmentation trains feed-forward rows (A-D); row {} is recurrent",
+            c.run.row
+        ));
+    }
     if p.critic_learning_rate
         .is_some_and(|r| !(r.is_finite() && r > 0.0))
     {

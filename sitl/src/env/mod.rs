@@ -18,6 +18,7 @@
 //! **The reward** of a step, term by term, is [`reward`]'s (docs/DESIGN.md "Rewards").
 
 use crate::dynamics::Preset;
+use crate::mirror::{Mirror, NoMirror};
 use crate::racing_line;
 use crate::referee::{SpawnMode, TrackProgress};
 use crate::world::{Drone, World};
@@ -260,6 +261,8 @@ pub struct VecEnv {
     /// Rows of the envs that were done in the last step: the observation of the state the
     /// episode ended in, before the respawn (other rows are stale).
     final_observations: Vec<f32>,
+    /// The track's mirror symmetry, when it has one ([`VecEnv::mirrored_observations`]).
+    mirror: Result<Mirror, NoMirror>,
 }
 
 /// What one env's last step was made of: its reward term by term and its events. The
@@ -335,6 +338,7 @@ impl VecEnv {
         let max_steps = ((config.episode_s / world.dt_s).round() as u32).max(1);
         let n = config.num_envs;
         let obs_dim = config.observation.layout.dim();
+        let mirror = Mirror::of_track(&world.track);
         let mut env = Self {
             world,
             progress,
@@ -350,6 +354,7 @@ impl VecEnv {
             timeouts: vec![false; n],
             records: vec![StepRecord::default(); n],
             final_observations: vec![0.0; n * obs_dim],
+            mirror,
             config,
         };
         for i in 0..n {
@@ -610,6 +615,34 @@ impl VecEnv {
         self.observe_all();
     }
 
+    /// The observation of every env's current state reflected in the track's mirror plane
+    /// ([`crate::mirror`]), `num_envs × obs_dim`, row-major, into `out` (cleared first): the
+    /// reflected drones (and opponents) observed by the same pipeline, targeting the
+    /// reflected gates, after the reflected previous actions. A learner that trains on
+    /// mirror images pairs each with [`Mirror::motors`] of the action taken. A track without
+    /// the symmetry is refused and `out` is left empty.
+    pub fn mirrored_observations(&self, out: &mut Vec<f32>) -> Result<(), NoMirror> {
+        out.clear();
+        let mirror = self.mirror.as_ref().map_err(Clone::clone)?;
+        out.resize(self.slots.len() * self.obs_dim, 0.0);
+        for (slot, obs) in self.slots.iter().zip(out.chunks_exact_mut(self.obs_dim)) {
+            observe_drones(
+                &self.world,
+                &self.spec,
+                &slot.drones.each_ref().map(|d| mirror.drone(d)),
+                &mirror.motors(&slot.previous_action),
+                slot.opponent.is_some(),
+                obs,
+            );
+        }
+        Ok(())
+    }
+
+    /// The track's mirror symmetry, if it has one.
+    pub fn mirror(&self) -> Result<&Mirror, NoMirror> {
+        self.mirror.as_ref().map_err(Clone::clone)
+    }
+
     /// The statistics since the last call, summed over envs, and reset.
     pub fn take_stats(&mut self) -> EnvStats {
         let mut total = EnvStats::default();
@@ -788,10 +821,31 @@ fn step_slot(
 }
 
 fn observe(world: &World, spec: &ObservationSpec, slot: &Slot, out: &mut [f32]) {
-    let [d, opp] = &slot.drones;
+    let racing = slot.opponent.is_some();
+    observe_drones(
+        world,
+        spec,
+        &slot.drones,
+        &slot.previous_action,
+        racing,
+        out,
+    );
+}
+
+/// The ego's observation (`drones[0]`, after `previous_action`), with `drones[1]` as the
+/// opponent when `racing`; zeros when the pipeline refuses the state.
+fn observe_drones(
+    world: &World,
+    spec: &ObservationSpec,
+    drones: &[Drone; 2],
+    previous_action: &[f32; ACTION_DIM],
+    racing: bool,
+    out: &mut [f32],
+) {
+    let [d, opp] = drones;
     let gate = world.track.gate(d.progress.target);
-    let opponent = slot.opponent.as_ref().map(|_| &opp.body.state);
-    match spec.observe(&d.body.state, &gate, &slot.previous_action, opponent) {
+    let opponent = racing.then_some(&opp.body.state);
+    match spec.observe(&d.body.state, &gate, previous_action, opponent) {
         Ok(o) => out.copy_from_slice(o.as_slice()),
         // Only a diverged state fails, and a diverged state is a crash that was respawned.
         Err(_) => out.fill(0.0),
