@@ -440,6 +440,19 @@ def compare_report(trace_path, intervals):
             f"| {np.median(h[:, 0]):.2f}-{np.median(h[:, 1]):.2f} "
             f"| {seg[2].min():.2f}-{seg[2].max():.2f} |"
         )
+    # The figure-8 reflected in x = 0 is itself with its halves swapped (sitl::mirror):
+    # segment g and segment g + 3 are mirror images, so the optimum flies them alike.
+    half = n // 2
+    if n % 2 == 0 and all(segs_flown):
+        med = [np.median(s) for s in segs_flown]
+        pairs = ", ".join(
+            f"g{g}->g{g + 1} {med[g]:.3f} / g{g + half}->g{(g + half + 1) % n} {med[g + half]:.3f} s"
+            for g in range(half)
+        )
+        print(
+            f"mirror halves (segment g and g+{half} are reflections of each other): {pairs}; "
+            f"the faster of each pair on both halves: {2 * sum(min(med[g], med[g + half]) for g in range(half)):.3f} s"
+        )
     # What the reward pays for each line: the optimum's positions at the simulator's rate
     # (its corners lie on the opening's edge, which sampling can miss by a centimetre).
     dt = trace["episodes"][0]["dt_s"]
