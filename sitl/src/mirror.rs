@@ -14,11 +14,15 @@
 //!
 //! The reflection M = diag(m) (m = (−1, 1, 1) for the plane x = 0) acts on:
 //! - positions and world velocities: p ↦ M p, v ↦ M v;
-//! - the attitude: R ↦ M R M (the body reflected in its own x = 0 plane, which maps the
-//!   cf2x's propellers onto each other), i.e. the quaternion (w, v) ↦ (w, −m ⊙ v);
-//! - body rates (a pseudo-vector): ω ↦ −m ⊙ ω;
-//! - motors: motor i's role passes to the motor at the reflected position, which spins the
-//!   other way (so the yaw torque changes sign with the reflection, as it must).
+//! - the attitude: R ↦ M R B, with B = diag(1, −1, 1) the body reflected in its own
+//!   x-z plane (left and right swapped, forward and up kept). That maps the cf2x's
+//!   propellers onto each other and keeps a drone that flies nose first flying nose first:
+//!   the image of a state the policy visits is a state it visits on the other half. (The
+//!   body's y-z reflection would also be a symmetry, but its images fly tail first, states
+//!   no flight reaches: run m1 in docs/TRAINING.md.)
+//! - body rates (a pseudo-vector): ω ↦ det(B)·B ω = (−ωx, ωy, −ωz);
+//! - motors: motor i's role passes to the motor at its mirror position (x, −y), which spins
+//!   the other way (so the yaw torque changes sign with the reflection, as it must).
 
 use crate::world::Drone;
 use firmware_core::math::{Quat, Vec3};
@@ -29,6 +33,9 @@ use firmware_core::vehicle::{Cf2x, VehicleState};
 /// Largest position error (m) and direction error (cosine below 1) accepted when matching
 /// a reflected gate to a gate of the track.
 const MATCH_TOLERANCE: f32 = 1e-3;
+
+/// The body's reflection B: left and right swapped (y ↦ −y), forward and up kept.
+const BODY_SIGNS: Vec3 = Vec3::new(1.0, -1.0, 1.0);
 
 /// A reflection that maps a track onto itself in racing order, with the gate and motor
 /// renumbering it implies.
@@ -89,11 +96,25 @@ impl Mirror {
     pub fn state(&self, s: &VehicleState) -> VehicleState {
         let m = self.signs;
         let q = s.attitude;
+        // M R B = (M R M)(M B): the rotation conjugated by M, then M B, a rotation by π
+        // about the one axis M B keeps (or none when M = B).
+        let conjugated = Quat::new(q.w, -m.x * q.x, -m.y * q.y, -m.z * q.z);
+        let mb = mul(m, BODY_SIGNS);
+        let turn = if mb.x > 0.0 && mb.y > 0.0 {
+            Quat::IDENTITY
+        } else if mb.z > 0.0 {
+            Quat::new(0.0, 0.0, 0.0, 1.0)
+        } else if mb.y > 0.0 {
+            Quat::new(0.0, 0.0, 1.0, 0.0)
+        } else {
+            Quat::new(0.0, 1.0, 0.0, 0.0)
+        };
         VehicleState {
             position_m: mul(m, s.position_m),
-            attitude: Quat::new(q.w, -m.x * q.x, -m.y * q.y, -m.z * q.z),
+            attitude: conjugated * turn,
             velocity_mps: mul(m, s.velocity_mps),
-            body_rates_radps: mul(m, s.body_rates_radps).scale(-1.0),
+            // det(B) = −1
+            body_rates_radps: mul(BODY_SIGNS, s.body_rates_radps).scale(-1.0),
         }
     }
 
@@ -160,8 +181,8 @@ fn gate_map(track: &Track<'_>, signs: Vec3) -> Result<Vec<usize>, String> {
     Ok(map)
 }
 
-/// The cf2x's motor renumbering under the body's reflection in its x = 0 plane: motor i
-/// goes to the motor at (−x, y) with the opposite spin.
+/// The cf2x's motor renumbering under the body's reflection B: motor i goes to the motor at
+/// its mirror position with the opposite spin.
 fn motor_map() -> Result<[usize; ACTION_DIM], NoMirror> {
     let pos = Cf2x::PROPELLER_POSITIONS_M;
     let spin = Cf2x::SPIN_SIGNS;
@@ -169,13 +190,13 @@ fn motor_map() -> Result<[usize; ACTION_DIM], NoMirror> {
     for (i, m) in map.iter_mut().enumerate() {
         *m = (0..ACTION_DIM)
             .find(|&j| {
-                (pos[j][0] + pos[i][0]).abs() < 1e-6
-                    && (pos[j][1] - pos[i][1]).abs() < 1e-6
+                (pos[j][0] - BODY_SIGNS.x * pos[i][0]).abs() < 1e-6
+                    && (pos[j][1] - BODY_SIGNS.y * pos[i][1]).abs() < 1e-6
                     && spin[j] == -spin[i]
             })
             .ok_or_else(|| {
                 NoMirror(format!(
-                    "motor {i}'s reflection in the body's x = 0 plane is not a motor spinning the other way"
+                    "motor {i}'s mirror position in the body is not a motor spinning the other way"
                 ))
             })?;
     }
@@ -197,9 +218,22 @@ mod tests {
         let m = Mirror::of_track(&Track::figure_eight()).unwrap();
         assert_eq!(m.signs, Vec3::new(-1.0, 1.0, 1.0));
         assert_eq!(m.gates, vec![3, 4, 5, 0, 1, 2]);
-        // front-right <-> back-right, back-left <-> front-left
-        assert_eq!(m.motors, [1, 0, 3, 2]);
-        assert_eq!(m.motors(&[0.1, 0.2, 0.3, 0.4]), [0.2, 0.1, 0.4, 0.3]);
+        // front-right <-> front-left, back-right <-> back-left
+        assert_eq!(m.motors, [3, 2, 1, 0]);
+        assert_eq!(m.motors(&[0.1, 0.2, 0.3, 0.4]), [0.4, 0.3, 0.2, 0.1]);
+        // A drone flying nose first along +x, level, mirrors into one flying nose first
+        // along −x (yawed by π), not tail first.
+        let s = VehicleState {
+            position_m: Vec3::new(2.0, 1.0, 1.0),
+            attitude: Quat::IDENTITY,
+            velocity_mps: Vec3::new(5.0, 0.0, 0.0),
+            body_rates_radps: Vec3::ZERO,
+        };
+        let r = m.state(&s);
+        assert_eq!(r.position_m, Vec3::new(-2.0, 1.0, 1.0));
+        let nose = r.attitude.rotate(Vec3::X);
+        assert!((nose - Vec3::new(-1.0, 0.0, 0.0)).norm() < 1e-6, "{nose:?}");
+        assert!(r.attitude.inverse_rotate(r.velocity_mps).x > 4.99);
     }
 
     #[test]

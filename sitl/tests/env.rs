@@ -599,9 +599,10 @@ fn racing_line_spawns_are_nodes_of_the_optimal_lap() {
 }
 
 /// The mirror images a learner trains on (`VecEnv::mirrored_observations`), against the
-/// reflection worked out by hand for the figure-8 (sitl::mirror): attitude (w, x, −y, −z),
-/// body velocity (−vx, vy, vz), body rates (ωx, −ωy, −ωz), the previous action's motors
-/// renumbered 0 ↔ 1, 2 ↔ 3, and the gate seen from the drone with x kept and exactly one
+/// reflection worked out by hand for the figure-8 (sitl::mirror): attitude (w, x, y, z) ↦
+/// (z, −y, −x, w) (conjugated by the x = 0 reflection, then yawed by π), body velocity
+/// (vx, −vy, vz), body rates (−ωx, ωy, −ωz), the previous action's motors renumbered
+/// 0 ↔ 3, 1 ↔ 2, and the gate seen from the drone with x kept and exactly one
 /// of y, z negated (the paper's frames of g1 and g2 are upside down, their mirrors g4 and g5
 /// upright).
 #[test]
@@ -629,10 +630,10 @@ fn mirrored_observations_are_the_reflection_by_hand() {
             assert!(y_flipped || z_flipped, "gate y, z: {o:?} {m:?}");
             flips[usize::from(z_flipped && !y_flipped)] += 1;
             let want = [
-                o[3], o[4], -o[5], -o[6], // attitude
-                -o[7], o[8], o[9], // body velocity
-                o[10], -o[11], -o[12], // body rates
-                o[14], o[13], o[16], o[15], // previous action
+                o[6], -o[5], -o[4], o[3], // attitude
+                o[7], -o[8], o[9], // body velocity
+                -o[10], o[11], -o[12], // body rates
+                o[16], o[15], o[14], o[13], // previous action
             ];
             for (k, (w, g)) in want.iter().zip(&m[3..]).enumerate() {
                 assert!(close(*w, *g), "value {}: {w} vs {g}", k + 3);
