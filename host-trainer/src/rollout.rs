@@ -122,19 +122,17 @@ pub fn collect_rollout(
     let mut actions = vec![0.0f32; n * ACTION_DIM];
     let mut noise = vec![0.0f32; n * ACTION_DIM];
     let mut mirrored = Vec::new();
+    let no_mirror =
+        |e: sitl::mirror::NoMirror| TrainError::Unsupported(format!("mirror augmentation: {e}"));
     let mirror = if rollout.mirrored {
-        Some(
-            env.mirror()
-                .map_err(|e| TrainError::Unsupported(format!("mirror augmentation: {e}")))?
-                .clone(),
-        )
+        Some(env.mirror().map_err(no_mirror)?.clone())
     } else {
         None
     };
     for _ in 0..steps {
         if mirror.is_some() {
             env.mirrored_observations(&mut mirrored)
-                .map_err(|e| TrainError::Unsupported(format!("mirror augmentation: {e}")))?;
+                .map_err(no_mirror)?;
             rollout.mirror_obs.extend_from_slice(&mirrored);
         }
         let obs = env.observations();

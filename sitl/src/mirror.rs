@@ -43,6 +43,8 @@ const BODY_SIGNS: Vec3 = Vec3::new(1.0, -1.0, 1.0);
 pub struct Mirror {
     /// Diagonal of the reflection (one component −1, the others 1).
     signs: Vec3,
+    /// M·B, the rotation that follows the attitude's conjugation by M (see [`Mirror::state`]).
+    turn: Quat,
     /// `gates[k]` is the gate the reflection of gate k lands on.
     gates: Vec<usize>,
     /// `motors[i]` is the motor that takes motor i's command in the reflected drone.
@@ -76,6 +78,7 @@ impl Mirror {
                 Ok(gates) => {
                     return Ok(Self {
                         signs,
+                        turn: half_turn(mul(signs, BODY_SIGNS)),
                         gates,
                         motors,
                     });
@@ -96,22 +99,11 @@ impl Mirror {
     pub fn state(&self, s: &VehicleState) -> VehicleState {
         let m = self.signs;
         let q = s.attitude;
-        // M R B = (M R M)(M B): the rotation conjugated by M, then M B, a rotation by π
-        // about the one axis M B keeps (or none when M = B).
+        // M R B = (M R M)(M B): the rotation conjugated by M, then M B.
         let conjugated = Quat::new(q.w, -m.x * q.x, -m.y * q.y, -m.z * q.z);
-        let mb = mul(m, BODY_SIGNS);
-        let turn = if mb.x > 0.0 && mb.y > 0.0 {
-            Quat::IDENTITY
-        } else if mb.z > 0.0 {
-            Quat::new(0.0, 0.0, 0.0, 1.0)
-        } else if mb.y > 0.0 {
-            Quat::new(0.0, 0.0, 1.0, 0.0)
-        } else {
-            Quat::new(0.0, 1.0, 0.0, 0.0)
-        };
         VehicleState {
             position_m: mul(m, s.position_m),
-            attitude: conjugated * turn,
+            attitude: conjugated * self.turn,
             velocity_mps: mul(m, s.velocity_mps),
             // det(B) = −1
             body_rates_radps: mul(BODY_SIGNS, s.body_rates_radps).scale(-1.0),
@@ -145,17 +137,33 @@ fn mul(a: Vec3, b: Vec3) -> Vec3 {
     Vec3::new(a.x * b.x, a.y * b.y, a.z * b.z)
 }
 
+/// The rotation diag(`d`) (a product of two reflections: all signs +1, or two of them −1),
+/// as a quaternion: none, or half a turn about the one axis it keeps.
+fn half_turn(d: Vec3) -> Quat {
+    if d.x > 0.0 && d.y > 0.0 {
+        Quat::IDENTITY
+    } else if d.z > 0.0 {
+        Quat::new(0.0, 0.0, 0.0, 1.0)
+    } else if d.y > 0.0 {
+        Quat::new(0.0, 0.0, 1.0, 0.0)
+    } else {
+        Quat::new(0.0, 1.0, 0.0, 0.0)
+    }
+}
+
 /// Each gate's image under the reflection `signs`, checked against the track.
 fn gate_map(track: &Track<'_>, signs: Vec3) -> Result<Vec<usize>, String> {
     let gates = track.gates();
+    // Each gate's frame axes (travel, opening y, opening z) in the world.
+    let frames: Vec<[Vec3; 3]> = gates
+        .iter()
+        .map(|g| [Vec3::X, Vec3::Y, Vec3::Z].map(|a| g.frame.rotate(a)))
+        .collect();
     let mut map = Vec::with_capacity(gates.len());
-    for (k, g) in gates.iter().enumerate() {
+    for (k, (g, g_axes)) in gates.iter().zip(&frames).enumerate() {
         let center = mul(signs, g.center_m);
-        let axes = [Vec3::X, Vec3::new(0.0, 1.0, 0.0), Vec3::new(0.0, 0.0, 1.0)]
-            .map(|a| mul(signs, g.frame.rotate(a)));
-        let image = gates.iter().position(|h| {
-            let h_axes = [Vec3::X, Vec3::new(0.0, 1.0, 0.0), Vec3::new(0.0, 0.0, 1.0)]
-                .map(|a| h.frame.rotate(a));
+        let axes = g_axes.map(|a| mul(signs, a));
+        let image = gates.iter().zip(&frames).position(|(h, h_axes)| {
             (h.center_m - center).norm() < MATCH_TOLERANCE
                 // the direction of travel is kept; the opening's axes up to their sign
                 && axes[0].dot(h_axes[0]) > 1.0 - MATCH_TOLERANCE
