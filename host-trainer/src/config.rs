@@ -378,6 +378,36 @@ pub struct PpoConfig {
     /// at its default, as `min_learning_rate`).
     #[serde(default, skip_serializing_if = "is_false")]
     pub mirror_augmentation: bool,
+    /// The faster half of the figure-8 teaches the slower one (not in the paper; docs/TRAINING.md
+    /// "The faster half teaches the slower"): on every sample whose target gate is the mirror
+    /// image of one of `gates`, the actor's mean is also pulled toward the mean the policy
+    /// itself gives the sample's mirror image (`sitl::mirror`), its motors renumbered.
+    /// Feed-forward rows only. Default none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mirror_teacher: Option<MirrorTeacher>,
+}
+
+/// A policy's own flight on one half of a mirror-symmetric track as the target of its
+/// flight on the other half: a squared-error term on the actor's mean, added to PPO's loss,
+///
+/// `coef × (1/N) Σ_students ‖μ(o) − P μ_old(o′)‖²`
+///
+/// over a minibatch of N samples, where the students are the samples whose target gate's
+/// mirror is in `gates`, o′ is the sample's reflected observation (targeting that gate) and
+/// P renumbers the motors. The target comes from the policy of the rollout (the old policy)
+/// and carries no gradient. The samples still train on PPO's surrogate as well.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MirrorTeacher {
+    /// The target gates whose flights teach: a sample targeting gate g learns from its
+    /// image when the mirror of g is one of these. On the figure-8 every policy measured
+    /// flies the segments to g0, g2 and g4 faster than their mirrors (to g3, g5, g1).
+    pub gates: Vec<usize>,
+    /// Weight of the squared error (per action component, action units).
+    pub coef: f32,
+    /// The first iteration with the term (0: from the start).
+    #[serde(default)]
+    pub from_iteration: u32,
 }
 
 /// Which implementation takes the PPO steps of the feed-forward networks.

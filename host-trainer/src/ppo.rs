@@ -73,6 +73,10 @@ pub struct Learner<A = Actor, C = Critic> {
     pub fused_optim: Option<FusedOptim>,
 }
 
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
+}
+
 /// Adam as PyTorch's defaults (β 0.9/0.999, ε 1e-8), which RSL-RL uses.
 pub fn adam() -> ModuleOptimizer {
     AdamConfig::new().with_epsilon(1e-8).init()
@@ -98,6 +102,12 @@ pub struct UpdateStats {
     pub grad_norm: f64,
     /// Learning rate after the update.
     pub learning_rate: f64,
+    /// With `[ppo] mirror_teacher`: the mean squared distance, summed over the four action
+    /// components, between the actor's mean and its mirror teacher's target over the samples
+    /// that learn from their images, before each step. 0 when off. `mirror_loss` in
+    /// `metrics.jsonl` (left out when 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub mirror_loss: f64,
     /// Minibatches skipped because a loss or the gradient norm was not finite (the networks
     /// are left as they were). `skipped_minibatches` in `metrics.jsonl`.
     #[serde(rename = "skipped_minibatches", default)]
@@ -167,6 +177,8 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             returns: Vec::new(),
             advantages: Vec::new(),
             sequence: Self::RECURRENT.then(|| Sequences::of(r)),
+            mirror_targets: Vec::new(),
+            mirror_weights: Vec::new(),
         };
         let (old_mean, old_values, last_values, critic_next) =
             match self.fused_outputs(&batch.obs, &r.last_obs, p) {
@@ -229,7 +241,21 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
         if let Some(seq) = &mut batch.sequence {
             seq.critic_next = critic_next;
         }
+        // The mirror teacher's targets belong to the flown samples (an augmented batch is
+        // refused with the teacher by the config).
+        let teaching = p.mirror_teacher.is_some()
+            && !mirrored
+            && !Self::RECURRENT
+            && r.mirror_weights.len() == n
+            && r.mirror_targets.len() == r.actions.len();
+        let (mirror_targets, mirror_weights) = if teaching {
+            (r.mirror_targets.clone(), r.mirror_weights.clone())
+        } else {
+            (Vec::new(), Vec::new())
+        };
         Batch {
+            mirror_targets,
+            mirror_weights,
             old_log_prob,
             old_mean,
             old_std,
@@ -372,6 +398,7 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             entropy,
             kl,
             clip_fraction,
+            mirror_loss,
         } = actor_pass;
         let mut critic_grads = critic_grads;
         let norm = (squared_norm(&self.actor, &actor_grads)
@@ -413,6 +440,7 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             grad_norm: norm,
             learning_rate: lr,
             skipped: 0,
+            mirror_loss,
         }
     }
 }
@@ -486,6 +514,7 @@ fn epochs(
             stats.kl += s.kl;
             stats.clip_fraction += s.clip_fraction;
             stats.grad_norm += s.grad_norm;
+            stats.mirror_loss += s.mirror_loss;
             count += 1.0;
         }
     }
@@ -496,6 +525,7 @@ fn epochs(
         stats.kl /= count;
         stats.clip_fraction /= count;
         stats.grad_norm /= count;
+        stats.mirror_loss /= count;
     }
     stats
 }
@@ -518,6 +548,7 @@ struct ActorPass {
     entropy: f64,
     kl: f64,
     clip_fraction: f64,
+    mirror_loss: f64,
 }
 
 /// The critic's clipped value loss on a minibatch and its gradients.
@@ -578,7 +609,7 @@ fn actor_pass<A: PolicyNet>(
     }
     kl /= idx.len().max(1) as f64;
     let inv_std = log_std.clone().neg().exp().unsqueeze::<2>();
-    let z = (actions - mean) * inv_std;
+    let z = (actions - mean.clone()) * inv_std;
     let log_prob = (z.square().sum_dim(1).mul_scalar(-0.5)
         - log_std.clone().sum().unsqueeze::<2>())
     .sub_scalar(0.5 * LN_2PI * ACTION_DIM as f32);
@@ -598,12 +629,31 @@ fn actor_pass<A: PolicyNet>(
         .add_scalar(0.5 * (1.0 + LN_2PI) * ACTION_DIM as f32);
     let surrogate_v = f64::from(surrogate.clone().into_scalar::<f32>());
     let entropy_v = f64::from(entropy.clone().into_scalar::<f32>());
-    let loss = surrogate - entropy.mul_scalar(p.entropy_coef);
+    let mut loss = surrogate - entropy.mul_scalar(p.entropy_coef);
+    let mut mirror_loss = 0.0;
+    if let (Some(t), false) = (&p.mirror_teacher, b.mirror_weights.is_empty()) {
+        // coef × (1/N) Σ w ‖μ − target‖², the target a constant.
+        let w = pick(&b.mirror_weights);
+        let students = w.iter().sum::<f32>();
+        let target = tensor2(
+            gather(&b.mirror_targets, ACTION_DIM, idx),
+            ACTION_DIM,
+            device,
+        );
+        let w = tensor2(w, 1, device);
+        let sq = (mean - target).square().sum_dim(1) * w;
+        let total = sq.sum();
+        if students > 0.0 {
+            mirror_loss = f64::from(total.clone().into_scalar::<f32>()) / f64::from(students);
+        }
+        loss = loss + total.mul_scalar(t.coef / idx.len().max(1) as f32);
+    }
     ActorPass {
         grads: GradientsParams::from_grads(loss.backward(), actor),
         surrogate: surrogate_v,
         entropy: entropy_v,
         kl,
         clip_fraction,
+        mirror_loss,
     }
 }

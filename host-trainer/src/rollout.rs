@@ -55,6 +55,16 @@ pub struct Rollout {
     /// With `mirrored`: the actions with their motors renumbered by the reflection, laid
     /// out as `actions`.
     pub mirror_actions: Vec<f32>,
+    /// The mirror teacher's gates (`[ppo] mirror_teacher`; empty: off): a step whose target
+    /// gate's mirror is one of them records the policy's own mean on its mirror image as
+    /// its target. Set by the owner of the buffer, not cleared.
+    pub teacher_gates: Vec<usize>,
+    /// With `teacher_gates`: per step and env, the policy's mean on the step's reflected
+    /// observation with its motors renumbered back (laid out as `actions`; zeros where the
+    /// step does not learn from its image).
+    pub mirror_targets: Vec<f32>,
+    /// With `teacher_gates`: per step and env, 1 where the step learns from its image, else 0.
+    pub mirror_weights: Vec<f32>,
 }
 
 impl Rollout {
@@ -83,14 +93,17 @@ impl Rollout {
         self.actor_h0.clear();
         self.mirror_obs.clear();
         self.mirror_actions.clear();
+        self.mirror_targets.clear();
+        self.mirror_weights.clear();
     }
 }
 
 /// Collects `steps` steps of every env of `env` into `rollout` (cleared first): actions are
 /// `policy`'s Gaussian means (firmware-core's network, the deployed code, in parallel over
 /// envs) plus `std`-scaled noise drawn serially from `noise_rng`. `on_step` sees each step's
-/// rewards and dones. With `rollout.mirrored`, each step's mirror image is recorded too (an
-/// environment whose track has no mirror symmetry is refused).
+/// rewards and dones. With `rollout.mirrored`, each step's mirror image is recorded too, and
+/// with `rollout.teacher_gates` the mirror teacher's targets (an environment whose track has
+/// no mirror symmetry is refused).
 pub fn collect_rollout(
     env: &mut VecEnv,
     policy: &Policy<'_>,
@@ -123,17 +136,40 @@ pub fn collect_rollout(
     let mut noise = vec![0.0f32; n * ACTION_DIM];
     let mut mirrored = Vec::new();
     let no_mirror =
-        |e: sitl::mirror::NoMirror| TrainError::Unsupported(format!("mirror augmentation: {e}"));
-    let mirror = if rollout.mirrored {
+        |e: sitl::mirror::NoMirror| TrainError::Unsupported(format!("mirror images: {e}"));
+    let teaching = !rollout.teacher_gates.is_empty();
+    if teaching && policy.is_recurrent() {
+        return Err(TrainError::Unsupported(
+            "the mirror teacher needs a feed-forward policy".into(),
+        ));
+    }
+    let mirror = if rollout.mirrored || teaching {
         Some(env.mirror().map_err(no_mirror)?.clone())
     } else {
         None
     };
+    let mut targets = Vec::new();
+    let mut weights = Vec::new();
     for _ in 0..steps {
-        if mirror.is_some() {
+        if let Some(m) = &mirror {
             env.mirrored_observations(&mut mirrored)
                 .map_err(no_mirror)?;
-            rollout.mirror_obs.extend_from_slice(&mirrored);
+            if rollout.mirrored {
+                rollout.mirror_obs.extend_from_slice(&mirrored);
+            }
+            if teaching {
+                weights.clear();
+                weights.extend(env.target_gates().map(|g| {
+                    if rollout.teacher_gates.contains(&m.gate(g)) {
+                        1.0f32
+                    } else {
+                        0.0
+                    }
+                }));
+                mirror_teacher_targets(policy, m, &mirrored, obs_dim, &mut weights, &mut targets);
+                rollout.mirror_targets.extend_from_slice(&targets);
+                rollout.mirror_weights.extend_from_slice(&weights);
+            }
         }
         let obs = env.observations();
         rollout.obs.extend_from_slice(obs);
@@ -162,7 +198,7 @@ pub fn collect_rollout(
                 }
             });
         rollout.actions.extend_from_slice(&actions);
-        if let Some(m) = &mirror {
+        if let Some(m) = mirror.as_ref().filter(|_| rollout.mirrored) {
             for a in actions.chunks_exact(ACTION_DIM) {
                 let a: [f32; ACTION_DIM] = core::array::from_fn(|k| a[k]);
                 rollout.mirror_actions.extend_from_slice(&m.motors(&a));
@@ -185,6 +221,42 @@ pub fn collect_rollout(
     }
     rollout.last_obs.extend_from_slice(env.observations());
     Ok(())
+}
+
+/// The mirror teacher's targets of one step into `out` (`envs × 4`, resized): for every env
+/// with a non-zero weight, the feed-forward `policy`'s mean on the env's reflected
+/// observation (`mirrored`, `envs × obs_dim`) with its motors renumbered back by `mirror`
+/// (a reflection is its own inverse); zeros elsewhere. An observation that does not load
+/// (not finite) gets weight 0.
+fn mirror_teacher_targets(
+    policy: &Policy<'_>,
+    mirror: &sitl::mirror::Mirror,
+    mirrored: &[f32],
+    obs_dim: usize,
+    weights: &mut [f32],
+    out: &mut Vec<f32>,
+) {
+    out.clear();
+    out.resize(weights.len() * ACTION_DIM, 0.0);
+    out.par_chunks_mut(ACTION_DIM * 64)
+        .zip(mirrored.par_chunks(obs_dim * 64))
+        .zip(weights.par_chunks_mut(64))
+        .for_each(|((t, o), w)| {
+            for ((t, o), w) in t
+                .chunks_exact_mut(ACTION_DIM)
+                .zip(o.chunks_exact(obs_dim))
+                .zip(w)
+            {
+                if *w == 0.0 {
+                    continue;
+                }
+                let mut state = PolicyState::Stateless;
+                match Observation::from_values(o).and_then(|o| policy.act(&o, &mut state)) {
+                    Some(mean) => t.copy_from_slice(&mirror.motors(&mean)),
+                    None => *w = 0.0,
+                }
+            }
+        });
 }
 
 /// Appends a firmware-core recurrent state in the flat layout of

@@ -280,6 +280,11 @@ fn iteration<A: PolicyNet, C: ValueNet>(
         .warm_start
         .as_ref()
         .is_none_or(|w| state.iteration >= w.critic_iterations);
+    // The mirror teacher's targets are recorded from its first iteration on.
+    lp.rollout.teacher_gates = match &config.ppo.mirror_teacher {
+        Some(t) if state.iteration >= t.from_iteration => t.gates.clone(),
+        _ => Vec::new(),
+    };
     // Rollout with the deployed network.
     let payload = state.learner.actor.payload();
     let std = state.learner.actor.std();

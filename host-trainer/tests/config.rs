@@ -195,3 +195,55 @@ fn mirror_augmentation_is_a_feed_forward_option_that_keeps_old_hashes() {
         "{e}"
     );
 }
+
+#[test]
+fn the_mirror_teacher_is_checked_and_hashed() {
+    let teacher =
+        "mirror_teacher = { gates = [0, 2, 4], coef = 0.5, from_iteration = 100 }\ninit_std";
+    let on = TrainConfig::parse(&STAGE1.replacen("init_std", teacher, 1)).unwrap();
+    let t = on.ppo.mirror_teacher.clone().unwrap();
+    assert_eq!(
+        (t.gates, t.coef, t.from_iteration),
+        (vec![0, 2, 4], 0.5, 100)
+    );
+    assert_eq!(TrainConfig::parse(STAGE1).unwrap().ppo.mirror_teacher, None);
+    assert_ne!(on.hash(), TrainConfig::parse(STAGE1).unwrap().hash());
+    let round_trip = TrainConfig::parse(&toml::to_string(&on).unwrap()).unwrap();
+    assert_eq!(round_trip, on);
+    for (bad, why) in [
+        ("gates = [0, 6], coef = 0.5", "gates"),
+        ("gates = [], coef = 0.5", "gates"),
+        ("gates = [1], coef = 0.0", "coef"),
+        ("gates = [1], coef = nan", "coef"),
+    ] {
+        let text = STAGE1.replacen(
+            "init_std",
+            &format!("mirror_teacher = {{ {bad} }}\ninit_std"),
+            1,
+        );
+        let e = TrainConfig::parse(&text).unwrap_err().to_string();
+        assert!(
+            e.contains("mirror_teacher") && e.contains(why),
+            "{bad}: {e}"
+        );
+    }
+    let both = STAGE1.replacen(
+        "init_std",
+        "mirror_augmentation = true\nmirror_teacher = { gates = [1], coef = 1.0 }\ninit_std",
+        1,
+    );
+    let e = TrainConfig::parse(&both).unwrap_err().to_string();
+    assert!(e.contains("mirror_augmentation"), "{e}");
+    let g = include_str!("../configs/stage2_G.toml");
+    let e = TrainConfig::parse(&g.replacen(
+        "[ppo]\n",
+        "[ppo]\nmirror_teacher = { gates = [0], coef = 1.0 }\n",
+        1,
+    ))
+    .unwrap_err()
+    .to_string();
+    assert!(
+        e.contains("mirror_teacher") && e.contains("recurrent"),
+        "{e}"
+    );
+}

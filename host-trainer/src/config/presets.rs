@@ -141,6 +141,7 @@ impl Default for PpoConfig {
             init_hover: false,
             update: UpdateKind::Fused,
             mirror_augmentation: false,
+            mirror_teacher: None,
         }
     }
 }

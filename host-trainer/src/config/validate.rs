@@ -192,6 +192,28 @@ fn ppo(c: &TrainConfig) -> Result<(), ConfigError> {
             c.run.row
         ));
     }
+    if let Some(t) = &p.mirror_teacher {
+        if ('E'..='G').contains(&c.run.row) {
+            return bad(format!(
+                "ppo.mirror_teacher trains feed-forward rows (A-D); row {} is recurrent",
+                c.run.row
+            ));
+        }
+        if p.mirror_augmentation {
+            return bad(
+                "ppo.mirror_teacher and ppo.mirror_augmentation both train on the mirror images: choose one",
+            );
+        }
+        if !(t.coef.is_finite() && t.coef > 0.0) {
+            return bad("ppo.mirror_teacher.coef must be positive");
+        }
+        let gates = firmware_core::track::Track::figure_eight().len();
+        if t.gates.is_empty() || t.gates.iter().any(|&g| g >= gates) {
+            return bad(format!(
+                "ppo.mirror_teacher.gates must name teaching gates among 0..{gates}"
+            ));
+        }
+    }
     if p.critic_learning_rate
         .is_some_and(|r| !(r.is_finite() && r > 0.0))
     {

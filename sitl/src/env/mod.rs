@@ -638,6 +638,11 @@ impl VecEnv {
         Ok(())
     }
 
+    /// The gate each env's ego must pass next (the gate its observation shows), one per env.
+    pub fn target_gates(&self) -> impl ExactSizeIterator<Item = usize> + '_ {
+        self.slots.iter().map(|s| s.drones[0].progress.target)
+    }
+
     /// The track's mirror symmetry, if it has one.
     pub fn mirror(&self) -> Result<&Mirror, NoMirror> {
         self.mirror.as_ref().map_err(Clone::clone)
