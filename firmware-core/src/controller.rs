@@ -2,11 +2,14 @@
 //! target gate, stepped once per control period.
 //!
 //! A step reads in order: 10 validate the inputs (a NaN or infinity gives the fail-safe),
-//! 20 advance the target gate with the segment test, 30 observe, 40 infer, 50 clip the
-//! Gaussian mean to [-1, 1], 60 map to rpm (paper eq. 3).
+//! 20 advance the target gate with the segment test, 30 observe (through the track's mirror
+//! on its mirrored half when the blob's pipeline is folded, [`crate::mirror`]), 40 infer,
+//! 50 clip the Gaussian mean to [-1, 1] (and renumber it back to the world's motors after a
+//! folded observation), 60 map to rpm (paper eq. 3).
 
 use crate::blob::{Blob, BlobError};
 use crate::math::Vec3;
+use crate::mirror::{MirrorError, TrackMirror, observe_folded, unfold_action};
 use crate::nn::ACTION_DIM;
 use crate::observation::{Observation, ObservationError, ObservationSpec};
 use crate::policy::{Policy, PolicyState};
@@ -26,6 +29,8 @@ pub enum ControllerError {
         /// Control period requested (ns).
         requested_ns: u32,
     },
+    /// The blob's pipeline is folded by a mirror symmetry the track does not have.
+    NoMirror(MirrorError),
 }
 
 impl From<BlobError> for ControllerError {
@@ -44,6 +49,10 @@ impl core::fmt::Display for ControllerError {
             } => write!(
                 f,
                 "recurrent policy trained at a {trained_ns} ns control period cannot run at {requested_ns} ns"
+            ),
+            Self::NoMirror(e) => write!(
+                f,
+                "the blob's observations are folded, but the track has {e}"
             ),
         }
     }
@@ -101,6 +110,8 @@ pub struct Controller<'w> {
     action_map: ActionMap,
     control_period_ns: u32,
     track: Track<'w>,
+    /// The track's mirror, when the blob's pipeline is folded.
+    fold: Option<TrackMirror>,
     progress: GateProgress,
     previous_action: [f32; ACTION_DIM],
     previous_position: Option<Vec3>,
@@ -139,6 +150,11 @@ impl<'w> Controller<'w> {
                 requested_ns: control_period_ns,
             });
         }
+        let fold = if header.observation.is_folded() {
+            Some(TrackMirror::of_track(&track).map_err(ControllerError::NoMirror)?)
+        } else {
+            None
+        };
         Ok(Self {
             policy,
             state: policy.initial_state(),
@@ -146,6 +162,7 @@ impl<'w> Controller<'w> {
             action_map: header.action_map,
             control_period_ns,
             track,
+            fold,
             progress: GateProgress::targeting(0),
             previous_action: [0.0; ACTION_DIM],
             previous_position: None,
@@ -175,7 +192,7 @@ impl<'w> Controller<'w> {
         // 20 target gate, 30 observe
         let (progress, gate_event, obs) = self.observe_next(own, opponent);
         self.progress = progress;
-        let obs = match obs {
+        let (obs, folded) = match obs {
             Ok(obs) => obs,
             Err(e) => {
                 let fault = match e {
@@ -194,8 +211,12 @@ impl<'w> Controller<'w> {
             self.state.clear();
             return self.fail_safe(StepFault::NonFiniteAction, gate_event);
         };
-        // 50 clip, 60 map to rpm
-        let action = mean.map(|a| a.clamp(-1.0, 1.0));
+        // 50 clip (and renumber a folded step's action), 60 map to rpm
+        let action = unfold_action(
+            self.fold.as_ref(),
+            folded,
+            &mean.map(|a| a.clamp(-1.0, 1.0)),
+        );
         self.previous_action = action;
         StepOutput {
             command: self.action_map.command(&action),
@@ -215,7 +236,7 @@ impl<'w> Controller<'w> {
     ) -> (
         GateProgress,
         GateEvent,
-        Result<Observation, ObservationError>,
+        Result<(Observation, bool), ObservationError>,
     ) {
         let mut progress = self.progress;
         let gate_event = match self.previous_position {
@@ -224,10 +245,15 @@ impl<'w> Controller<'w> {
             }
             _ => GateEvent::None,
         };
-        let gate = self.track.gate(progress.target);
-        let obs = self
-            .observation
-            .observe(own, &gate, &self.previous_action, opponent);
+        let obs = observe_folded(
+            &self.observation,
+            self.fold.as_ref(),
+            &self.track,
+            own,
+            progress.target,
+            &self.previous_action,
+            opponent,
+        );
         (progress, gate_event, obs)
     }
 
@@ -239,7 +265,7 @@ impl<'w> Controller<'w> {
         own: &VehicleState,
         opponent: Option<&VehicleState>,
     ) -> Result<Observation, ObservationError> {
-        self.observe_next(own, opponent).2
+        self.observe_next(own, opponent).2.map(|(obs, _)| obs)
     }
 
     fn fail_safe(&mut self, fault: StepFault, gate_event: GateEvent) -> StepOutput {

@@ -5,6 +5,7 @@
 //!
 //! * [`track`]: gates, the paper's figure-8, next-gate bookkeeping, the gate-plane tests;
 //! * [`observation`]: the 17-, 20- and 30-value observations (docs/DESIGN.md "Observations");
+//! * [`mirror`]: the track's mirror symmetry and the folded observation that uses it;
 //! * [`nn`] and [`policy`]: fixed-size Linear / LSTM / MLP inference and the Table 1
 //!   architectures A–G, viewing weights in place;
 //! * [`blob`]: the flash-ready weight format (postcard header, aligned payload, CRC-32);
@@ -30,6 +31,7 @@ pub mod controller;
 pub mod crc32;
 mod format;
 pub mod math;
+pub mod mirror;
 pub mod nn;
 pub mod observation;
 pub mod policy;

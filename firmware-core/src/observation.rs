@@ -28,8 +28,16 @@ use crate::track::Gate;
 use crate::vehicle::VehicleState;
 use serde::{Deserialize, Serialize};
 
-/// Version of this pipeline's semantics. A blob whose spec names another version is refused.
+/// Version of this pipeline's semantics. A blob whose spec names a version other than this
+/// or [`FOLDED_PIPELINE_VERSION`] is refused.
 pub const OBSERVATION_PIPELINE_VERSION: u16 = 1;
+
+/// Version 1 folded by the track's mirror symmetry ([`crate::mirror`]): a step whose target
+/// gate is on the mirrored half observes the reflected state, reflected gate and reflected
+/// previous action, and its action is renumbered back to the world's motors. The values and
+/// their scales are version 1's; only which state they are taken of differs. A controller
+/// for a track without the symmetry refuses such a blob.
+pub const FOLDED_PIPELINE_VERSION: u16 = 2;
 
 /// The largest observation (stage 2).
 pub const MAX_OBSERVATION_DIM: usize = 30;
@@ -182,6 +190,24 @@ impl ObservationSpec {
         }
     }
 
+    /// This spec folded by the track's mirror ([`FOLDED_PIPELINE_VERSION`]) or not (version 1).
+    pub const fn with_fold(self, folded: bool) -> Self {
+        Self {
+            version: if folded {
+                FOLDED_PIPELINE_VERSION
+            } else {
+                OBSERVATION_PIPELINE_VERSION
+            },
+            ..self
+        }
+    }
+
+    /// True when the spec folds the track's mirrored half onto the other
+    /// ([`FOLDED_PIPELINE_VERSION`]).
+    pub const fn is_folded(&self) -> bool {
+        self.version == FOLDED_PIPELINE_VERSION
+    }
+
     /// Number of values of this spec's observations.
     pub const fn dim(&self) -> usize {
         self.layout.dim()
@@ -191,7 +217,7 @@ impl ObservationSpec {
     /// scale finite and positive.
     pub fn is_supported(&self) -> bool {
         let positive = |s: f32| s.is_finite() && s > 0.0;
-        self.version == OBSERVATION_PIPELINE_VERSION
+        (self.version == OBSERVATION_PIPELINE_VERSION || self.version == FOLDED_PIPELINE_VERSION)
             && positive(self.gate_position_scale_m)
             && positive(self.velocity_scale_mps)
             && positive(self.body_rate_scale_radps)

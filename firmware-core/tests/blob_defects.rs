@@ -5,7 +5,7 @@ use firmware_core::blob::{
     AlignedBytes, Blob, BlobError, BlobHeader, FORMAT_VERSION, MAGIC, PREFIX_LEN, encode,
 };
 use firmware_core::crc32::crc32;
-use firmware_core::observation::OBSERVATION_PIPELINE_VERSION;
+use firmware_core::observation::FOLDED_PIPELINE_VERSION;
 use firmware_core::policy::{Architecture, TableRow};
 use firmware_core::synthetic::{self, SplitMix64};
 
@@ -173,7 +173,7 @@ fn non_finite_weight_is_refused() {
 
 #[test]
 fn observation_spec_of_another_pipeline_is_refused() {
-    let bytes = encode_with(|h| h.observation.version = OBSERVATION_PIPELINE_VERSION + 1);
+    let bytes = encode_with(|h| h.observation.version = FOLDED_PIPELINE_VERSION + 1);
     assert_eq!(parse(&bytes), Err(BlobError::ObservationSpecMismatch));
     let bytes = encode_with(|h| h.observation.velocity_scale_mps = 0.0);
     assert_eq!(parse(&bytes), Err(BlobError::ObservationSpecMismatch));

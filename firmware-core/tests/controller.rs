@@ -143,3 +143,69 @@ fn same_inputs_same_outputs() {
     };
     assert_eq!(run(), run());
 }
+
+/// A folded blob (observation pipeline version 2): on the mirrored half (targets g3-g5) the
+/// controller flies the mirror image of what the same network, unfolded, does on the
+/// reflected state flying to the reflected gate; on g0-g2 it flies as the unfolded one. A
+/// track without the symmetry is refused.
+#[test]
+fn a_folded_controller_flies_the_mirrored_half_as_the_image_of_the_other() {
+    use firmware_core::mirror::TrackMirror;
+    let h = synthetic::header(TableRow::A, 5);
+    let w = synthetic::weights(&h.architecture, 5);
+    let mut folded_header = h.clone();
+    folded_header.observation = h.observation.with_fold(true);
+    let plain = AlignedBytes::new(&firmware_core::blob::encode(&h, &w).expect("encode"));
+    let folded =
+        AlignedBytes::new(&firmware_core::blob::encode(&folded_header, &w).expect("encode"));
+    let track = Track::figure_eight();
+    let m = TrackMirror::of_track(&track).expect("the figure-8 mirrors");
+    let s = VehicleState {
+        position_m: Vec3::new(1.5, -2.0, 1.2),
+        attitude: Quat::new(0.9, 0.1, -0.3, 0.2).normalized(),
+        velocity_mps: Vec3::new(3.0, 1.0, -0.5),
+        body_rates_radps: Vec3::new(0.4, -1.0, 2.0),
+    };
+    let mut seen = [false; 2];
+    for target in 0..6 {
+        let mut f = Controller::from_bytes(folded.as_bytes(), track).expect("controller");
+        let mut p = Controller::from_bytes(plain.as_bytes(), track).expect("controller");
+        f.reset(target);
+        p.reset(if m.folds(target) {
+            m.gate(target)
+        } else {
+            target
+        });
+        // Two steps, so the previous action is folded too.
+        for step in 0..2 {
+            let out = f.step(&s, None);
+            assert_eq!(out.fault, None);
+            if m.folds(target) {
+                let img = p.step(&m.state(&s), None);
+                assert_eq!(
+                    out.action,
+                    m.motors(&img.action),
+                    "target {target}, step {step}"
+                );
+                // The next step's previous action is the image's, as the plain one saw it.
+                if step == 0 {
+                    let again_f = f.peek_observation(&s, None).expect("obs");
+                    let again_p = p.peek_observation(&m.state(&s), None).expect("obs");
+                    assert_eq!(again_f, again_p);
+                }
+                seen[1] = true;
+            } else {
+                assert_eq!(out, p.step(&s, None), "target {target}, step {step}");
+                seen[0] = true;
+            }
+        }
+    }
+    assert_eq!(seen, [true, true]);
+    // Without the symmetry the folded blob cannot fly.
+    let mut moved = firmware_core::track::FIGURE_EIGHT;
+    moved[1].center_m.x += 0.5;
+    let e = Controller::from_bytes(folded.as_bytes(), Track::new(&moved, 0.8).expect("track"))
+        .expect_err("no mirror");
+    assert!(matches!(e, ControllerError::NoMirror(_)), "{e}");
+    assert!(e.to_string().contains("folded"), "{e}");
+}

@@ -283,6 +283,13 @@ pub struct EnvSection {
     /// (left out of the canonical TOML at 0).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub racing_line_fraction: f32,
+    /// Fold the track onto one half by its mirror symmetry (`firmware_core::mirror`): steps
+    /// flying to the mirrored half's gates (g3-g5) observe their mirror image and fly the
+    /// image's action renumbered back, so the network learns g0-g2 from both halves' flights.
+    /// Recorded in the blob (observation pipeline version 2), so the controller folds as
+    /// training did. Paper: false. Default false (left out of the canonical TOML).
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub fold_mirror: bool,
 }
 
 /// A falling σ ceiling ([`PpoConfig::max_std_decay`]). Its iterations are absolute, not

@@ -34,7 +34,8 @@ impl TrainConfig {
     }
 
     /// The observation spec of the run: the paper's layout for its row (17 values for A, 20
-    /// for B, 30 for the others) with `env.velocity_scale_mps`.
+    /// for B, 30 for the others) with `env.velocity_scale_mps`, folded by the track's mirror
+    /// with `env.fold_mirror`.
     pub fn observation_spec(&self) -> ObservationSpec {
         let layout = TableRow::from_letter(self.run.row).map_or(
             TableRow::G.observation_layout(),
@@ -42,7 +43,7 @@ impl TrainConfig {
         );
         let mut spec = ObservationSpec::paper(layout);
         spec.velocity_scale_mps = self.env.velocity_scale_mps;
-        spec
+        spec.with_fold(self.env.fold_mirror)
     }
 
     /// The action that holds hover with the run's preset and the paper's action map.

@@ -247,3 +247,39 @@ fn the_mirror_teacher_is_checked_and_hashed() {
         "{e}"
     );
 }
+
+/// `env.fold_mirror`: read, hashed only when on (older configs keep their hash), carried
+/// into the observation spec (pipeline version 2) that the env and the blob use, and
+/// refused beside the options that train on mirror images or label world motors.
+#[test]
+fn the_mirror_fold_is_checked_hashed_and_reaches_the_spec() {
+    const RL: &str = include_str!("../configs/stage1_rl.toml");
+    let plain = TrainConfig::parse(RL).unwrap();
+    let on = TrainConfig::parse(&RL.replacen("[env]\n", "[env]\nfold_mirror = true\n", 1)).unwrap();
+    assert!(on.env.fold_mirror && !plain.env.fold_mirror);
+    assert_ne!(on.hash(), plain.hash());
+    assert!(!toml::to_string(&plain).unwrap().contains("fold_mirror"));
+    assert_eq!(
+        TrainConfig::parse(&toml::to_string(&on).unwrap()).unwrap(),
+        on
+    );
+    assert!(on.observation_spec().is_folded());
+    assert!(!plain.observation_spec().is_folded());
+    assert_eq!(
+        on.observation_spec().with_fold(false),
+        plain.observation_spec()
+    );
+    let both = RL
+        .replacen("[env]\n", "[env]\nfold_mirror = true\n", 1)
+        .replacen("init_std", "mirror_augmentation = true\ninit_std", 1);
+    let e = TrainConfig::parse(&both).unwrap_err().to_string();
+    assert!(
+        e.contains("fold_mirror") && e.contains("mirror_augmentation"),
+        "{e}"
+    );
+    // stage1.toml warm-starts from the baseline, whose labels are the world's motors.
+    let e = TrainConfig::parse(&STAGE1.replacen("[env]\n", "[env]\nfold_mirror = true\n", 1))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("fold_mirror") && e.contains("warm start"), "{e}");
+}

@@ -25,31 +25,16 @@
 //!   the other way (so the yaw torque changes sign with the reflection, as it must).
 
 use crate::world::Drone;
-use firmware_core::math::{Quat, Vec3};
+use firmware_core::mirror::TrackMirror;
 use firmware_core::nn::ACTION_DIM;
 use firmware_core::track::Track;
-use firmware_core::vehicle::{Cf2x, VehicleState};
-
-/// Largest position error (m) and direction error (cosine below 1) accepted when matching
-/// a reflected gate to a gate of the track.
-const MATCH_TOLERANCE: f32 = 1e-3;
-
-/// The body's reflection B: left and right swapped (y ↦ −y), forward and up kept.
-const BODY_SIGNS: Vec3 = Vec3::new(1.0, -1.0, 1.0);
+use firmware_core::vehicle::VehicleState;
 
 /// A reflection that maps a track onto itself in racing order, with the gate and motor
-/// renumbering it implies.
+/// renumbering it implies: firmware-core's [`TrackMirror`] (the one a folded controller
+/// flies with), extended to the simulator's drones.
 #[derive(Clone, Debug, PartialEq)]
-pub struct Mirror {
-    /// Diagonal of the reflection (one component −1, the others 1).
-    signs: Vec3,
-    /// M·B, the rotation that follows the attitude's conjugation by M (see [`Mirror::state`]).
-    turn: Quat,
-    /// `gates[k]` is the gate the reflection of gate k lands on.
-    gates: Vec<usize>,
-    /// `motors[i]` is the motor that takes motor i's command in the reflected drone.
-    motors: [usize; ACTION_DIM],
-}
+pub struct Mirror(TrackMirror);
 
 /// Why a track has no mirror symmetry this module can use.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -57,7 +42,7 @@ pub struct NoMirror(pub String);
 
 impl core::fmt::Display for NoMirror {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        write!(f, "no mirror symmetry: {}", self.0)
+        f.write_str(&self.0)
     }
 }
 
@@ -65,61 +50,32 @@ impl std::error::Error for NoMirror {}
 
 impl Mirror {
     /// The reflection in the plane x = 0 or, failing that, y = 0 that maps `track` onto
-    /// itself in racing order (each gate onto a gate with the same centre, direction of
-    /// travel and opening axes up to sign, and the gate after it onto the gate after that).
+    /// itself in racing order ([`TrackMirror::of_track`]).
     pub fn of_track(track: &Track<'_>) -> Result<Self, NoMirror> {
-        let motors = motor_map()?;
-        let mut why = Vec::new();
-        for (plane, signs) in [
-            ("x = 0", Vec3::new(-1.0, 1.0, 1.0)),
-            ("y = 0", Vec3::new(1.0, -1.0, 1.0)),
-        ] {
-            match gate_map(track, signs) {
-                Ok(gates) => {
-                    return Ok(Self {
-                        signs,
-                        turn: half_turn(mul(signs, BODY_SIGNS)),
-                        gates,
-                        motors,
-                    });
-                }
-                Err(e) => why.push(format!("plane {plane}: {e}")),
-            }
-        }
-        Err(NoMirror(why.join("; ")))
+        TrackMirror::of_track(track)
+            .map(Self)
+            .map_err(|e| NoMirror(e.to_string()))
+    }
+
+    /// The firmware-core reflection.
+    pub fn track_mirror(&self) -> &TrackMirror {
+        &self.0
     }
 
     /// The gate the reflection of gate `index` lands on.
     pub fn gate(&self, index: usize) -> usize {
-        let n = self.gates.len().max(1);
-        self.gates.get(index % n).copied().unwrap_or(0)
+        self.0.gate(index)
     }
 
     /// The reflected vehicle state.
     pub fn state(&self, s: &VehicleState) -> VehicleState {
-        let m = self.signs;
-        let q = s.attitude;
-        // M R B = (M R M)(M B): the rotation conjugated by M, then M B.
-        let conjugated = Quat::new(q.w, -m.x * q.x, -m.y * q.y, -m.z * q.z);
-        VehicleState {
-            position_m: mul(m, s.position_m),
-            attitude: conjugated * self.turn,
-            velocity_mps: mul(m, s.velocity_mps),
-            // det(B) = −1
-            body_rates_radps: mul(BODY_SIGNS, s.body_rates_radps).scale(-1.0),
-        }
+        self.0.state(s)
     }
 
     /// The motor commands (or actions, or propeller speeds) of the reflected drone: motor
     /// i's value moves to the motor at its reflected position.
     pub fn motors(&self, values: &[f32; ACTION_DIM]) -> [f32; ACTION_DIM] {
-        let mut out = [0.0; ACTION_DIM];
-        for (i, &v) in values.iter().enumerate() {
-            if let Some(o) = self.motors.get(i).and_then(|&j| out.get_mut(j)) {
-                *o = v;
-            }
-        }
-        out
+        self.0.motors(values)
     }
 
     /// The reflected drone: state, propeller speeds and target gate (its count of gates
@@ -133,88 +89,11 @@ impl Mirror {
     }
 }
 
-fn mul(a: Vec3, b: Vec3) -> Vec3 {
-    Vec3::new(a.x * b.x, a.y * b.y, a.z * b.z)
-}
-
-/// The rotation diag(`d`) (a product of two reflections: all signs +1, or two of them −1),
-/// as a quaternion: none, or half a turn about the one axis it keeps.
-fn half_turn(d: Vec3) -> Quat {
-    if d.x > 0.0 && d.y > 0.0 {
-        Quat::IDENTITY
-    } else if d.z > 0.0 {
-        Quat::new(0.0, 0.0, 0.0, 1.0)
-    } else if d.y > 0.0 {
-        Quat::new(0.0, 0.0, 1.0, 0.0)
-    } else {
-        Quat::new(0.0, 1.0, 0.0, 0.0)
-    }
-}
-
-/// Each gate's image under the reflection `signs`, checked against the track.
-fn gate_map(track: &Track<'_>, signs: Vec3) -> Result<Vec<usize>, String> {
-    let gates = track.gates();
-    // Each gate's frame axes (travel, opening y, opening z) in the world.
-    let frames: Vec<[Vec3; 3]> = gates
-        .iter()
-        .map(|g| [Vec3::X, Vec3::Y, Vec3::Z].map(|a| g.frame.rotate(a)))
-        .collect();
-    let mut map = Vec::with_capacity(gates.len());
-    for (k, (g, g_axes)) in gates.iter().zip(&frames).enumerate() {
-        let center = mul(signs, g.center_m);
-        let axes = g_axes.map(|a| mul(signs, a));
-        let image = gates.iter().zip(&frames).position(|(h, h_axes)| {
-            (h.center_m - center).norm() < MATCH_TOLERANCE
-                // the direction of travel is kept; the opening's axes up to their sign
-                && axes[0].dot(h_axes[0]) > 1.0 - MATCH_TOLERANCE
-                && axes[1].dot(h_axes[1]).abs() > 1.0 - MATCH_TOLERANCE
-                && axes[2].dot(h_axes[2]).abs() > 1.0 - MATCH_TOLERANCE
-        });
-        match image {
-            Some(j) => map.push(j),
-            None => return Err(format!("gate {k}'s reflection is not a gate of the track")),
-        }
-    }
-    let n = gates.len();
-    for k in 0..n {
-        if map[(k + 1) % n] != (map[k] + 1) % n {
-            return Err(format!(
-                "the reflection reverses the racing order (gate {k} -> {}, gate {} -> {})",
-                map[k],
-                (k + 1) % n,
-                map[(k + 1) % n]
-            ));
-        }
-    }
-    Ok(map)
-}
-
-/// The cf2x's motor renumbering under the body's reflection B: motor i goes to the motor at
-/// its mirror position with the opposite spin.
-fn motor_map() -> Result<[usize; ACTION_DIM], NoMirror> {
-    let pos = Cf2x::PROPELLER_POSITIONS_M;
-    let spin = Cf2x::SPIN_SIGNS;
-    let mut map = [0; ACTION_DIM];
-    for (i, m) in map.iter_mut().enumerate() {
-        *m = (0..ACTION_DIM)
-            .find(|&j| {
-                (pos[j][0] - BODY_SIGNS.x * pos[i][0]).abs() < 1e-6
-                    && (pos[j][1] - BODY_SIGNS.y * pos[i][1]).abs() < 1e-6
-                    && spin[j] == -spin[i]
-            })
-            .ok_or_else(|| {
-                NoMirror(format!(
-                    "motor {i}'s mirror position in the body is not a motor spinning the other way"
-                ))
-            })?;
-    }
-    Ok(map)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::dynamics::Preset;
+    use firmware_core::math::{Quat, Vec3};
     use firmware_core::observation::{ObservationLayout, ObservationSpec};
     use firmware_core::track::CrashRules;
     use firmware_core::vehicle::ActionMap;
@@ -224,10 +103,12 @@ mod tests {
     #[test]
     fn the_figure_eight_mirrors_in_x_with_the_halves_swapped() {
         let m = Mirror::of_track(&Track::figure_eight()).unwrap();
-        assert_eq!(m.signs, Vec3::new(-1.0, 1.0, 1.0));
-        assert_eq!(m.gates, vec![3, 4, 5, 0, 1, 2]);
+        assert_eq!(m.track_mirror().signs(), Vec3::new(-1.0, 1.0, 1.0));
+        assert_eq!(
+            (0..6).map(|k| m.gate(k)).collect::<Vec<_>>(),
+            [3, 4, 5, 0, 1, 2]
+        );
         // front-right <-> front-left, back-right <-> back-left
-        assert_eq!(m.motors, [3, 2, 1, 0]);
         assert_eq!(m.motors(&[0.1, 0.2, 0.3, 0.4]), [0.4, 0.3, 0.2, 0.1]);
         // A drone flying nose first along +x, level, mirrors into one flying nose first
         // along −x (yawed by π), not tail first.

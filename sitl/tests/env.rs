@@ -643,3 +643,56 @@ fn mirrored_observations_are_the_reflection_by_hand() {
     // Both kinds of gate pair were seen.
     assert!(flips[0] > 0 && flips[1] > 0, "{flips:?}");
 }
+
+/// A folded env (`ObservationSpec::with_fold`, firmware_core::mirror): the same flights as a
+/// plain env of the same seed when each action on the mirrored half (targets g3-g5) is given
+/// as its image, and then it observes g0-g2 as the plain env does and g3-g5 as the plain
+/// env's mirror images. An action not renumbered back would fly another flight, and the
+/// observations would part.
+#[test]
+fn a_folded_env_observes_the_mirrored_half_as_its_image() {
+    let plain_config = EnvConfig::paper_along_track(64, 5);
+    let folded_config = EnvConfig {
+        observation: plain_config.observation.with_fold(true),
+        ..plain_config.clone()
+    };
+    let mut plain = VecEnv::time_trial(plain_config);
+    let mut folded = VecEnv::time_trial(folded_config);
+    let mirror = plain.mirror().unwrap().clone();
+    let mut mirrored = Vec::new();
+    let mut seen = [0usize; 2];
+    for step in 0..60 {
+        plain.mirrored_observations(&mut mirrored).unwrap();
+        let targets: Vec<usize> = plain.target_gates().collect();
+        assert_eq!(targets, folded.target_gates().collect::<Vec<_>>());
+        for (i, &t) in targets.iter().enumerate() {
+            let row = i * OBS_DIM..(i + 1) * OBS_DIM;
+            let want = if t >= 3 {
+                &mirrored[row.clone()]
+            } else {
+                &plain.observations()[row.clone()]
+            };
+            assert_eq!(
+                &folded.observations()[row],
+                want,
+                "step {step}, env {i}, target {t}"
+            );
+            seen[usize::from(t >= 3)] += 1;
+        }
+        let world: Vec<f32> = (0..64 * 4)
+            .map(|k| 0.45 + 0.4 * (((k * 7 + step * 3) % 13) as f32 / 13.0 - 0.5))
+            .collect();
+        let mut given = world.clone();
+        for (i, &t) in targets.iter().enumerate() {
+            if t >= 3 {
+                let a: [f32; 4] = world[i * 4..i * 4 + 4].try_into().unwrap();
+                given[i * 4..i * 4 + 4].copy_from_slice(&mirror.motors(&a));
+            }
+        }
+        plain.step(&world).unwrap();
+        folded.step(&given).unwrap();
+        assert_eq!(plain.rewards(), folded.rewards(), "step {step}");
+        assert_eq!(plain.dones(), folded.dones(), "step {step}");
+    }
+    assert!(seen[0] > 100 && seen[1] > 100, "{seen:?}");
+}

@@ -59,6 +59,7 @@ impl TrainConfig {
                 stage1_fraction: 0.2,
                 replay_fraction: 0.0,
                 racing_line_fraction: 0.0,
+                fold_mirror: false,
                 ..EnvSection::default()
             },
             ppo: PpoConfig {
@@ -111,6 +112,7 @@ impl Default for EnvSection {
             stage1_fraction: 0.0,
             replay_fraction: 0.0,
             racing_line_fraction: 0.0,
+            fold_mirror: false,
         }
     }
 }

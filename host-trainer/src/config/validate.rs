@@ -192,6 +192,18 @@ fn ppo(c: &TrainConfig) -> Result<(), ConfigError> {
             c.run.row
         ));
     }
+    if c.env.fold_mirror {
+        if p.mirror_augmentation || p.mirror_teacher.is_some() {
+            return bad(
+                "env.fold_mirror already flies both halves as one: ppo.mirror_augmentation and ppo.mirror_teacher would train on images of images",
+            );
+        }
+        if c.warm_start.is_some() {
+            return bad(
+                "env.fold_mirror: a warm start's teacher labels the world's motors, not the folded ones (not supported)",
+            );
+        }
+    }
     if let Some(t) = &p.mirror_teacher {
         if ('E'..='G').contains(&c.run.row) {
             return bad(format!(

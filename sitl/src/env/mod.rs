@@ -26,6 +26,7 @@ use firmware_core::Controller;
 use firmware_core::baseline::BaselineController;
 use firmware_core::blob::AlignedBytes;
 use firmware_core::math::Vec3;
+use firmware_core::mirror::{TrackMirror, observe_folded, unfold_action};
 use firmware_core::nn::ACTION_DIM;
 use firmware_core::observation::ObservationSpec;
 use firmware_core::track::{CrashRules, Track};
@@ -101,17 +102,18 @@ pub struct RaceConfig {
     pub competition_weight: f32,
 }
 
-/// The opponent's blob could not be flown.
+/// The environment could not be built: the opponent's blob cannot be flown, or the
+/// observation is folded ([`firmware_core::mirror`]) on a track without the symmetry.
 #[derive(Clone, Debug, PartialEq)]
-pub struct OpponentError(pub String);
+pub struct EnvError(pub String);
 
-impl core::fmt::Display for OpponentError {
+impl core::fmt::Display for EnvError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        write!(f, "opponent blob: {}", self.0)
+        f.write_str(&self.0)
     }
 }
 
-impl std::error::Error for OpponentError {}
+impl std::error::Error for EnvError {}
 
 /// `bytes` for the rest of the process, one copy per distinct blob: the opponent's
 /// [`Controller`] views its blob's weights in place (as in flash), so every env's controller
@@ -263,6 +265,9 @@ pub struct VecEnv {
     final_observations: Vec<f32>,
     /// The track's mirror symmetry, when it has one ([`VecEnv::mirrored_observations`]).
     mirror: Result<Mirror, NoMirror>,
+    /// The mirror the observations are folded by, when the spec is folded: the mirrored
+    /// half's steps are observed as their images, and their actions renumbered back.
+    fold: Option<TrackMirror>,
 }
 
 /// What one env's last step was made of: its reward term by term and its events. The
@@ -303,7 +308,7 @@ impl VecEnv {
     /// `config.num_envs` envs of a time trial or, with `config.race`, of a race; an opponent
     /// blob that does not validate, or whose policy would need to see an opponent itself, is
     /// refused here.
-    pub fn new(config: EnvConfig) -> Result<Self, OpponentError> {
+    pub fn new(config: EnvConfig) -> Result<Self, EnvError> {
         let rules = if config.race.is_some() {
             CrashRules::STAGE2
         } else {
@@ -314,16 +319,16 @@ impl VecEnv {
             None => None,
             Some(r) => {
                 let blob = firmware_core::blob::Blob::parse(interned(&r.opponent).as_bytes())
-                    .map_err(|e| OpponentError(e.to_string()))?;
+                    .map_err(|e| EnvError(format!("opponent blob: {e}")))?;
                 let opponent = Controller::new(
                     &blob,
                     Track::figure_eight(),
                     blob.header().control_period_ns,
                 )
-                .map_err(|e| OpponentError(e.to_string()))?;
+                .map_err(|e| EnvError(format!("opponent blob: {e}")))?;
                 if blob.header().observation.layout.needs_opponent() {
-                    return Err(OpponentError(
-                        "the opponent's policy observes an opponent itself; stage 2 races a time-trial (17-value) policy"
+                    return Err(EnvError(
+                        "opponent blob: the opponent's policy observes an opponent itself; stage 2 races a time-trial (17-value) policy"
                             .into(),
                     ));
                 }
@@ -339,6 +344,15 @@ impl VecEnv {
         let n = config.num_envs;
         let obs_dim = config.observation.layout.dim();
         let mirror = Mirror::of_track(&world.track);
+        let fold = match (&mirror, config.observation.is_folded()) {
+            (_, false) => None,
+            (Ok(m), true) => Some(*m.track_mirror()),
+            (Err(e), true) => {
+                return Err(EnvError(format!(
+                    "the observation is folded by the track's mirror, but the track has {e}"
+                )));
+            }
+        };
         let mut env = Self {
             world,
             progress,
@@ -355,6 +369,7 @@ impl VecEnv {
             records: vec![StepRecord::default(); n],
             final_observations: vec![0.0; n * obs_dim],
             mirror,
+            fold,
             config,
         };
         for i in 0..n {
@@ -390,7 +405,7 @@ impl VecEnv {
             .iter()
             .zip(self.observations.chunks_exact_mut(self.obs_dim))
         {
-            observe(&self.world, &self.spec, slot, obs);
+            observe(&self.world, &self.spec, self.fold.as_ref(), slot, obs);
         }
     }
 
@@ -502,9 +517,10 @@ impl VecEnv {
             });
         }
         let rule = self.spawn_rule();
-        let (world, spec, map, max_steps, obs_dim) = (
+        let (world, spec, fold, map, max_steps, obs_dim) = (
             &self.world,
             &self.spec,
+            self.fold.as_ref(),
             &self.map,
             self.max_steps,
             self.obs_dim,
@@ -535,6 +551,9 @@ impl VecEnv {
                                 0.0
                             }
                         });
+                        // A folded observation's action is the image's: renumber it back.
+                        let folded = fold.is_some_and(|m| m.folds(slot.drones[0].progress.target));
+                        let a = unfold_action(fold, folded, &a);
                         let rec = step_slot(world, progress, map, reward, max_steps, slot, &a);
                         let ended = rec.crashed || rec.timed_out;
                         if rec.gate_passed && !ended && rule.replay_fraction > 0.0 {
@@ -542,14 +561,20 @@ impl VecEnv {
                         }
                         if ended {
                             let row = i * obs_dim..(i + 1) * obs_dim;
-                            observe(world, spec, slot, &mut last[row]);
+                            observe(world, spec, fold, slot, &mut last[row]);
                             respawn(world, progress, &rule, slot);
                         }
                         rew[i] = rec.terms.total() as f32;
                         done[i] = ended;
                         timeout[i] = rec.timed_out;
                         record[i] = rec;
-                        observe(world, spec, slot, &mut obs[i * obs_dim..(i + 1) * obs_dim]);
+                        observe(
+                            world,
+                            spec,
+                            fold,
+                            slot,
+                            &mut obs[i * obs_dim..(i + 1) * obs_dim],
+                        );
                     }
                 },
             );
@@ -584,9 +609,10 @@ impl VecEnv {
 
     /// What a feed-forward `policy` (a time-trial blob's, observing through `spec`) would
     /// command in every env now: its means for the ego's state, the ego's target gate and
-    /// the ego's executed previous action (`num_envs × 4`, row-major). The labels of an
-    /// imitation warm start with a learned teacher; a recurrent or opponent-observing policy
-    /// gives zeros (it is refused before this is called).
+    /// the ego's executed previous action (`num_envs × 4`, row-major), as the world's motors
+    /// (a folded `spec` observes and acts through the track's mirror on its mirrored half).
+    /// The labels of an imitation warm start with a learned teacher; a recurrent or
+    /// opponent-observing policy gives zeros (it is refused before this is called).
     pub fn policy_actions(
         &self,
         policy: &firmware_core::policy::Policy<'_>,
@@ -594,14 +620,29 @@ impl VecEnv {
         out: &mut [f32],
     ) {
         let world = &self.world;
+        // A folded teacher flies through the track's mirror whether or not the env folds.
+        let fold = match &self.mirror {
+            Ok(m) if spec.is_folded() => Some(m.track_mirror()),
+            _ => None,
+        };
         self.per_env(out, |slot| {
             let d = &slot.drones[0];
-            let gate = world.track.gate(d.progress.target);
             let mut state = firmware_core::policy::PolicyState::Stateless;
-            spec.observe(&d.body.state, &gate, &slot.previous_action, None)
-                .ok()
-                .and_then(|o| policy.act(&o, &mut state))
-                .unwrap_or([0.0; ACTION_DIM])
+            observe_folded(
+                spec,
+                fold,
+                &world.track,
+                &d.body.state,
+                d.progress.target,
+                &slot.previous_action,
+                None,
+            )
+            .ok()
+            .and_then(|(o, folded)| {
+                let a = policy.act(&o, &mut state)?;
+                Some(unfold_action(fold, folded, &a))
+            })
+            .unwrap_or([0.0; ACTION_DIM])
         });
     }
 
@@ -825,16 +866,30 @@ fn step_slot(
     }
 }
 
-fn observe(world: &World, spec: &ObservationSpec, slot: &Slot, out: &mut [f32]) {
-    let racing = slot.opponent.is_some();
-    observe_drones(
-        world,
+/// The ego's observation of its slot, folded by `fold` (the env's, when its spec is
+/// folded); zeros when the pipeline refuses the state.
+fn observe(
+    world: &World,
+    spec: &ObservationSpec,
+    fold: Option<&TrackMirror>,
+    slot: &Slot,
+    out: &mut [f32],
+) {
+    let [d, opp] = &slot.drones;
+    let opponent = slot.opponent.is_some().then_some(&opp.body.state);
+    match observe_folded(
         spec,
-        &slot.drones,
+        fold,
+        &world.track,
+        &d.body.state,
+        d.progress.target,
         &slot.previous_action,
-        racing,
-        out,
-    );
+        opponent,
+    ) {
+        Ok((o, _)) => out.copy_from_slice(o.as_slice()),
+        // Only a diverged state fails, and a diverged state is a crash that was respawned.
+        Err(_) => out.fill(0.0),
+    }
 }
 
 /// The ego's observation (`drones[0]`, after `previous_action`), with `drones[1]` as the
