@@ -63,10 +63,15 @@ pub fn describe(path: &Path, bytes: &[u8], blob: &Blob<'_>) -> String {
     let o = &h.observation;
     let _ = writeln!(
         s,
-        "  observation:    {:?} ({} values), pipeline version {}",
+        "  observation:    {:?} ({} values), pipeline version {}{}",
         o.layout,
         o.dim(),
-        o.version
+        o.version,
+        if o.is_folded() {
+            " (folded: g3-g5 observed and flown as their mirror images)"
+        } else {
+            ""
+        }
     );
     let _ = writeln!(
         s,

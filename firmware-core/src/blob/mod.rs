@@ -22,7 +22,7 @@
 //! `String` is a varint length then its items, a struct is its fields in order.
 //! 1. `architecture`: `obs_dim` u16, `lstm_layers` u8 (one raw byte), `lstm_hidden` u16,
 //!    `mlp_hidden` `Vec<u16>` (≤ 6), `action_dim` u8, `activation` enum {0: Tanh}.
-//! 2. `observation`: `version` u16, `layout` enum {0: TimeTrial17, 1: OpponentPosition20,
+//! 2. `observation`: `version` u16 (1, or 2 for a folded pipeline: [`crate::mirror`]), `layout` enum {0: TimeTrial17, 1: OpponentPosition20,
 //!    2: FullOpponent30}, then seven f32: gate position scale (m), velocity scale (m/s), body
 //!    rate scale (rad/s), opponent position (m), velocity (m/s) and rate (rad/s) scales, clip.
 //! 3. `action_map`: `hover_rpm` f32, `gain` f32 (rpm = hover · (1 + gain · a)).
