@@ -23,6 +23,7 @@ const SHIPPED: &[(&str, &str, f64)] = &[
         10.94,
     ),
     ("stage1_rl", "policies/stage1_rl/config.toml", 8.40),
+    ("stage1_fold", "policies/stage1_fold/config.toml", 7.74),
 ];
 
 /// `policies/stage1_rl.blob` is PPO from a random network with the committed recipe: its
@@ -35,6 +36,49 @@ fn the_rl_policy_is_the_committed_recipe() {
     assert!(recipe.warm_start.is_none(), "no imitation");
     recipe.run.name = run.run.name.clone();
     assert_eq!(recipe.hash(), run.hash());
+}
+
+/// `policies/stage1_fold.blob` is PPO from a random network: run fold1 with the committed
+/// recipe (`configs/stage1_fold.toml` but for the name), forked at its last iteration into
+/// the blob's config, which changes only the run's name and length, the pass weight and the
+/// σ schedule; the blob observes folded, as it was trained.
+#[test]
+fn the_folded_policy_is_the_committed_recipe_and_its_finish() {
+    let fold1 = TrainConfig::load(&root().join("policies/stage1_fold/config_fold1.toml")).unwrap();
+    let mut recipe =
+        TrainConfig::load(&root().join("host-trainer/configs/stage1_fold.toml")).unwrap();
+    assert!(recipe.warm_start.is_none() && recipe.env.fold_mirror);
+    recipe.run.name = fold1.run.name.clone();
+    assert_eq!(recipe.hash(), fold1.hash());
+    let finish = TrainConfig::load(&root().join("policies/stage1_fold/config.toml")).unwrap();
+    let forked: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join("policies/stage1_fold/forked_from.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(
+        forked["iteration"].as_u64(),
+        Some(u64::from(fold1.run.iterations))
+    );
+    assert_eq!(
+        forked["config_hash"].as_str(),
+        Some(format!("{:016x}", fold1.hash()).as_str())
+    );
+    let mut undone = finish.clone();
+    undone.run.name = fold1.run.name.clone();
+    undone.run.iterations = fold1.run.iterations;
+    undone.reward.pass = fold1.reward.pass;
+    undone.ppo.max_std = fold1.ppo.max_std;
+    undone.ppo.max_std_decay = fold1.ppo.max_std_decay.clone();
+    assert_eq!(undone, fold1);
+    let (raw, _, _) = shipped_blob("stage1_fold", "policies/stage1_fold/config.toml");
+    let bytes = AlignedBytes::new(&raw);
+    assert!(
+        Blob::parse(bytes.as_bytes())
+            .unwrap()
+            .header()
+            .observation
+            .is_folded()
+    );
 }
 
 #[test]
