@@ -27,6 +27,9 @@ pub struct TrainConfig {
     /// Reward weights (docs/DESIGN.md "Rewards").
     #[serde(default)]
     pub reward: RewardWeights,
+    /// Optional fall of the pass reward's weight over the run (not in the paper).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pass_decay: Option<PassDecay>,
     /// Optional imitation warm start before PPO (not in the paper).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub warm_start: Option<WarmStart>,
@@ -305,6 +308,22 @@ pub struct StdDecay {
     pub to_iteration: u32,
 }
 
+/// A falling pass-reward weight ([`TrainConfig::pass_decay`], not in the paper): `reward.pass`
+/// until `from_iteration`, then linearly to `final_weight` at `to_iteration`. The pass reward
+/// `1 − ‖rel_gate‖` pays for crossing a gate near its centre, which helps a network find the
+/// gates early and costs lap time late (the fast line cuts the openings' edges; docs/TRAINING.md
+/// "One half, flown twice"). Iterations are absolute, like [`StdDecay`]'s.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PassDecay {
+    /// The pass weight from `to_iteration` on.
+    pub final_weight: f32,
+    /// The last iteration at `reward.pass`.
+    pub from_iteration: u32,
+    /// The first iteration at `final_weight`.
+    pub to_iteration: u32,
+}
+
 /// PPO hyper-parameters (docs/DESIGN.md "Learning"; the defaults are RSL-RL's and the paper's
 /// stage 1).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -519,6 +538,20 @@ impl PpoConfig {
 }
 
 impl TrainConfig {
+    /// The reward weights of the rollout of iteration `iteration` (0-based): `reward`, its pass
+    /// weight lowered by `pass_decay` when there is one.
+    pub fn reward_at(&self, iteration: u32) -> RewardWeights {
+        let Some(d) = &self.pass_decay else {
+            return self.reward;
+        };
+        let span = d.to_iteration.saturating_sub(d.from_iteration).max(1) as f32;
+        let t = (iteration.saturating_sub(d.from_iteration) as f32 / span).min(1.0);
+        RewardWeights {
+            pass: self.reward.pass + (d.final_weight - self.reward.pass) * t,
+            ..self.reward
+        }
+    }
+
     /// Reads and validates the TOML file at `path`.
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(ConfigError::Read)?;

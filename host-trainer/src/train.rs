@@ -285,6 +285,7 @@ fn iteration<A: PolicyNet, C: ValueNet>(
         Some(t) if state.iteration >= t.from_iteration => t.gates.clone(),
         _ => Vec::new(),
     };
+    lp.env.set_reward_weights(config.reward_at(state.iteration));
     // Rollout with the deployed network.
     let payload = state.learner.actor.payload();
     let std = state.learner.actor.std();

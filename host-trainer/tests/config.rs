@@ -166,6 +166,53 @@ fn the_sigma_ceiling_falls_linearly_between_its_iterations() {
     }
 }
 
+/// `pass_decay`: the pass weight falls linearly between its iterations, the other weights
+/// stay; absent, it leaves the canonical TOML (older configs keep their hash).
+#[test]
+fn the_pass_weight_falls_linearly_between_its_iterations() {
+    const RL: &str = include_str!("../configs/stage1_rl.toml");
+    let decay = "\n[pass_decay]\nfinal_weight = 0.25\nfrom_iteration = 100\nto_iteration = 400\n";
+    let c = TrainConfig::parse(&format!("{RL}{decay}")).unwrap();
+    let plain = TrainConfig::parse(RL).unwrap();
+    for (i, want) in [
+        (0, 1.0),
+        (100, 1.0),
+        (250, 0.625),
+        (400, 0.25),
+        (10_000, 0.25),
+    ] {
+        let w = c.reward_at(i);
+        assert!((w.pass - want).abs() < 1e-6, "iteration {i}: {}", w.pass);
+        assert_eq!(
+            RewardWeights {
+                pass: c.reward.pass,
+                ..w
+            },
+            c.reward
+        );
+    }
+    assert_eq!(plain.reward_at(10_000), plain.reward);
+    assert_ne!(c.hash(), plain.hash());
+    assert!(!toml::to_string(&plain).unwrap().contains("pass_decay"));
+    assert_eq!(
+        TrainConfig::parse(&toml::to_string(&c).unwrap()).unwrap(),
+        c
+    );
+    for bad in [
+        "\n[pass_decay]\nfinal_weight = -1.0\nfrom_iteration = 1\nto_iteration = 4\n",
+        "\n[pass_decay]\nfinal_weight = 0.0\nfrom_iteration = 4\nto_iteration = 4\n",
+        "\n[pass_decay]\nfinal_weight = 0.0\nfrom_iteration = 1\nto_iteration = 4\n[guard]\nenvs = 8\nwarmup_steps = 1\nsteps = 1\n",
+    ] {
+        assert!(
+            matches!(
+                TrainConfig::parse(&format!("{RL}{bad}")),
+                Err(ConfigError::Invalid(_))
+            ),
+            "{bad}"
+        );
+    }
+}
+
 #[test]
 fn mirror_augmentation_is_a_feed_forward_option_that_keeps_old_hashes() {
     let on =

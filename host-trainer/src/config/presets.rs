@@ -33,6 +33,7 @@ impl TrainConfig {
             ppo: PpoConfig::default(),
             reward: RewardWeights::default(),
             warm_start: None,
+            pass_decay: None,
             guard: None,
             race: None,
         }
@@ -73,6 +74,7 @@ impl TrainConfig {
             },
             reward: RewardWeights::default(),
             warm_start: Some(WarmStart::default()),
+            pass_decay: None,
             guard: None,
             race: None,
         }

@@ -19,6 +19,20 @@ pub(super) fn validate(c: &TrainConfig) -> Result<(), ConfigError> {
         }
     }
     env_ranges(c)?;
+    if let Some(d) = &c.pass_decay {
+        if !(d.final_weight >= 0.0 && d.final_weight.is_finite())
+            || d.from_iteration >= d.to_iteration
+        {
+            return bad(
+                "pass_decay: final_weight must be finite and >= 0 and from_iteration < to_iteration",
+            );
+        }
+        if c.guard.is_some() {
+            return bad(
+                "pass_decay with [guard]: the guard measures returns at the undecayed weights; use one or the other",
+            );
+        }
+    }
     ppo(c)
 }
 

@@ -28,7 +28,7 @@ use firmware_core::blob::AlignedBytes;
 use firmware_core::math::Vec3;
 use firmware_core::mirror::{TrackMirror, observe_folded, unfold_action};
 use firmware_core::nn::ACTION_DIM;
-use firmware_core::observation::ObservationSpec;
+use firmware_core::observation::{Observation, ObservationError, ObservationSpec};
 use firmware_core::track::{CrashRules, Track};
 use firmware_core::vehicle::ActionMap;
 use rand::{Rng, SeedableRng};
@@ -467,6 +467,17 @@ impl VecEnv {
         Ok(())
     }
 
+    /// The reward's weights of the steps to come.
+    pub fn reward_weights(&self) -> RewardWeights {
+        self.config.reward
+    }
+
+    /// Changes the reward's weights from the next step on (a trainer's reward schedule); the
+    /// worlds, episodes and observations are left as they are.
+    pub fn set_reward_weights(&mut self, weights: RewardWeights) {
+        self.config.reward = weights;
+    }
+
     /// The observation spec every observation follows (recorded in exported blobs).
     pub fn observation_spec(&self) -> ObservationSpec {
         self.spec
@@ -626,23 +637,14 @@ impl VecEnv {
             _ => None,
         };
         self.per_env(out, |slot| {
-            let d = &slot.drones[0];
             let mut state = firmware_core::policy::PolicyState::Stateless;
-            observe_folded(
-                spec,
-                fold,
-                &world.track,
-                &d.body.state,
-                d.progress.target,
-                &slot.previous_action,
-                None,
-            )
-            .ok()
-            .and_then(|(o, folded)| {
-                let a = policy.act(&o, &mut state)?;
-                Some(unfold_action(fold, folded, &a))
-            })
-            .unwrap_or([0.0; ACTION_DIM])
+            ego_observation(world, spec, fold, slot, false)
+                .ok()
+                .and_then(|(o, folded)| {
+                    let a = policy.act(&o, &mut state)?;
+                    Some(unfold_action(fold, folded, &a))
+                })
+                .unwrap_or([0.0; ACTION_DIM])
         });
     }
 
@@ -875,21 +877,32 @@ fn observe(
     slot: &Slot,
     out: &mut [f32],
 ) {
+    match ego_observation(world, spec, fold, slot, slot.opponent.is_some()) {
+        Ok((o, _)) => out.copy_from_slice(o.as_slice()),
+        // Only a diverged state fails, and a diverged state is a crash that was respawned.
+        Err(_) => out.fill(0.0),
+    }
+}
+
+/// The ego's observation in `slot` through `fold` (and whether it is the mirror image), with
+/// the opponent in it when `racing`.
+fn ego_observation(
+    world: &World,
+    spec: &ObservationSpec,
+    fold: Option<&TrackMirror>,
+    slot: &Slot,
+    racing: bool,
+) -> Result<(Observation, bool), ObservationError> {
     let [d, opp] = &slot.drones;
-    let opponent = slot.opponent.is_some().then_some(&opp.body.state);
-    match observe_folded(
+    observe_folded(
         spec,
         fold,
         &world.track,
         &d.body.state,
         d.progress.target,
         &slot.previous_action,
-        opponent,
-    ) {
-        Ok((o, _)) => out.copy_from_slice(o.as_slice()),
-        // Only a diverged state fails, and a diverged state is a crash that was respawned.
-        Err(_) => out.fill(0.0),
-    }
+        racing.then_some(&opp.body.state),
+    )
 }
 
 /// The ego's observation (`drones[0]`, after `previous_action`), with `drones[1]` as the
