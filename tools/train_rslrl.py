@@ -96,6 +96,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--episode-s", type=float, default=15.0)
     p.add_argument("--spawn-speed-mps", type=float, default=0.0)
     p.add_argument("--stage1-fraction", type=float, default=0.0)
+    p.add_argument("--stage2-fraction", type=float, default=0.0,
+                   help="share of the other respawns at the paper's stage-2 start (at rest before a gate)")
     p.add_argument("--replay-fraction", type=float, default=0.0,
                    help="share of respawns from an env's own recent post-pass states")
     p.add_argument("--racing-line-fraction", type=float, default=0.0,
@@ -227,6 +229,7 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
             spawn=args.spawn,
             spawn_speed_mps=args.spawn_speed_mps,
             stage1_fraction=args.stage1_fraction,
+            stage2_fraction=args.stage2_fraction,
             replay_fraction=args.replay_fraction,
             racing_line_fraction=args.racing_line_fraction,
         )

@@ -65,6 +65,7 @@ impl TrainConfig {
             random_initial_episode_length: self.env.random_initial_episode_length,
             spawn_speed_mps: self.env.spawn_speed_mps,
             stage1_fraction: self.env.stage1_fraction,
+            stage2_fraction: self.env.stage2_fraction,
             replay_fraction: self.env.replay_fraction,
             racing_line_fraction: self.env.racing_line_fraction,
             reward: self.reward,

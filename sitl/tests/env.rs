@@ -598,6 +598,54 @@ fn racing_line_spawns_are_nodes_of_the_optimal_lap() {
     assert_eq!(on_line(&mixed) + stage1, 64);
 }
 
+/// `stage2_fraction = 1`: every time-trial spawn is the paper's stage-2 start, at rest
+/// (whatever the spawn speed) 2 m (the ego's) or 1 m (the opponent's) before its target gate
+/// on the gate's axis, both distances and every heading drawn; with 0 none is.
+#[test]
+fn stage2_spawns_start_at_rest_one_or_two_metres_before_a_gate() {
+    let along = |fraction: f32| {
+        VecEnv::time_trial(EnvConfig {
+            spawn: SpawnMode::AlongTrack,
+            spawn_speed_mps: 8.0,
+            stage2_fraction: fraction,
+            random_initial_episode_length: false,
+            ..EnvConfig::paper_along_track(64, 5)
+        })
+    };
+    // Observation: the gate seen from the drone / 12 m (0..3), attitude (3..7), body
+    // velocity (7..10).
+    let before = |o: &[f32], d: f32| {
+        (o[0] - d / 12.0).abs() < 1e-5
+            && o[1].abs() < 1e-5
+            && o[2].abs() < 1e-5
+            && o[7..10].iter().all(|v| *v == 0.0)
+    };
+    let count = |env: &VecEnv, d: f32| {
+        env.observations()
+            .chunks_exact(OBS_DIM)
+            .filter(|o| before(o, d))
+            .count()
+    };
+    let env = along(1.0);
+    let (two, one) = (count(&env, 2.0), count(&env, 1.0));
+    assert_eq!(two + one, 64);
+    assert!(
+        two > 16 && one > 16,
+        "{two} ego starts, {one} opponent starts"
+    );
+    let mut attitudes: Vec<&[f32]> = env
+        .observations()
+        .chunks_exact(OBS_DIM)
+        .map(|o| &o[3..7])
+        .collect();
+    attitudes.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    attitudes.dedup();
+    // The six gates have four headings (g1 and g5 share theirs, g2 and g4 theirs).
+    assert_eq!(attitudes.len(), 4, "{} headings", attitudes.len());
+    let none = along(0.0);
+    assert_eq!(count(&none, 2.0) + count(&none, 1.0), 0);
+}
+
 /// The mirror images a learner trains on (`VecEnv::mirrored_observations`), against the
 /// reflection worked out by hand for the figure-8 (sitl::mirror): attitude (w, x, y, z) ↦
 /// (z, −y, −x, w) (conjugated by the x = 0 reflection, then yawed by π), body velocity

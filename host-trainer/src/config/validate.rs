@@ -142,6 +142,9 @@ fn env_ranges(c: &TrainConfig) -> Result<(), ConfigError> {
     if !(0.0..=1.0).contains(&c.env.replay_fraction) {
         return bad("env.replay_fraction must be in [0, 1]");
     }
+    if !(0.0..=1.0).contains(&c.env.stage2_fraction) {
+        return bad("env.stage2_fraction must be in [0, 1]");
+    }
     if !(0.0..=1.0).contains(&c.env.racing_line_fraction) {
         return bad("env.racing_line_fraction must be in [0, 1]");
     }

@@ -163,7 +163,7 @@ impl RustVecEnv {
     #[pyo3(signature = (*, task, num_envs, preset, seed, spawn, episode_s,
         random_initial_episode_length, opponent, competition, competition_weight, row,
         velocity_scale_mps, spawn_speed_mps, stage1_fraction, replay_fraction=0.0,
-        racing_line_fraction=0.0, reward_weights=None))]
+        racing_line_fraction=0.0, reward_weights=None, stage2_fraction=0.0))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         task: &str,
@@ -183,6 +183,7 @@ impl RustVecEnv {
         replay_fraction: f32,
         racing_line_fraction: f32,
         reward_weights: Option<std::collections::HashMap<String, f32>>,
+        stage2_fraction: f32,
     ) -> PyResult<Self> {
         let race = match task {
             "time_trial" => false,
@@ -232,6 +233,11 @@ impl RustVecEnv {
         if !(0.0..=1.0).contains(&stage1_fraction) {
             return Err(PyValueError::new_err(format!(
                 "stage1_fraction {stage1_fraction}: expected a share in [0, 1]"
+            )));
+        }
+        if !(0.0..=1.0).contains(&stage2_fraction) {
+            return Err(PyValueError::new_err(format!(
+                "stage2_fraction {stage2_fraction}: expected a share in [0, 1]"
             )));
         }
         if !(0.0..=1.0).contains(&replay_fraction) {
@@ -294,6 +300,7 @@ impl RustVecEnv {
             spawn,
             spawn_speed_mps,
             stage1_fraction,
+            stage2_fraction,
             replay_fraction,
             racing_line_fraction,
             episode_s,

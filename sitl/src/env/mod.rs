@@ -60,14 +60,20 @@ pub struct EnvConfig {
     /// Share of respawns at the paper's fixed stage-1 spawn (at rest) whatever `spawn` is:
     /// the start the referee evaluates stage 1 from. 0 for `spawn` alone.
     pub stage1_fraction: f32,
+    /// Share of the time-trial respawns that are neither replayed nor stage-1 at the paper's
+    /// stage-2 spawn (at rest, 2 m or 1 m before a random gate and targeting it: the ego's or
+    /// the opponent's start of a race, each half the time). The stage-1 policy is stage 2's
+    /// opponent and starts there; a policy trained only on moving or stage-1 starts may not
+    /// lift off cleanly that close to a gate. 0 for none (the paper's stage 1).
+    pub stage2_fraction: f32,
     /// Share of time-trial respawns that restart from a state the env itself flew through
     /// right after one of its recent gate passes (its position, attitude, velocity, rates,
     /// propeller speeds, next target and previous action), when it has one: Song et al.
     /// 2023's "states from successful gate passes", so the policy trains where its own
     /// flight takes it, at its own speeds. 0 for none (the paper's).
     pub replay_fraction: f32,
-    /// Share of the time-trial respawns that are neither replayed nor stage-1 spawns placed
-    /// on the `paper` preset's time-optimal lap ([`crate::racing_line`]): a random node's
+    /// Share of the time-trial respawns that are neither replayed nor stage-1 nor stage-2
+    /// spawns placed on the `paper` preset's time-optimal lap ([`crate::racing_line`]): a random node's
     /// position, velocity, thrust-aligned attitude and target gate. Shows the policy the
     /// fast line's states (corners, climbs, dives, 7-14 m/s); the line is the `paper`
     /// preset's, so with another preset it is a slower line than that preset could fly. 0
@@ -150,6 +156,7 @@ impl EnvConfig {
             spawn: SpawnMode::AlongTrack,
             spawn_speed_mps: 0.0,
             stage1_fraction: 0.0,
+            stage2_fraction: 0.0,
             replay_fraction: 0.0,
             racing_line_fraction: 0.0,
             episode_s: 15.0,
@@ -418,6 +425,7 @@ impl VecEnv {
             },
             max_speed_mps: self.config.spawn_speed_mps,
             stage1_fraction: self.config.stage1_fraction,
+            stage2_fraction: self.config.stage2_fraction,
             replay_fraction: self.config.replay_fraction,
             racing_line_fraction: self.config.racing_line_fraction,
             race: self.race.is_some(),
@@ -750,6 +758,7 @@ struct SpawnRule {
     mode: SpawnMode,
     max_speed_mps: f32,
     stage1_fraction: f32,
+    stage2_fraction: f32,
     replay_fraction: f32,
     racing_line_fraction: f32,
     race: bool,
@@ -761,8 +770,10 @@ struct SpawnRule {
 /// heading at a speed drawn from [0, `max_speed_mps`] when that is positive. The previous
 /// action zeroed. Otherwise, with probability `replay_fraction`, the state after one of the
 /// env's recent gate passes, with that step's previous action; and of the spawns that are
-/// neither replayed nor stage-1, a share `racing_line_fraction` is a random node of the
-/// time-optimal lap (moving as the optimum does there).
+/// neither replayed nor stage-1, a share `stage2_fraction` is the ego's or the opponent's
+/// stage-2 spawn (at rest), and of the rest a share `racing_line_fraction` is a random node
+/// of the time-optimal lap (moving as the optimum does there). A share of 0 draws no random
+/// number, so configs without it keep their streams.
 fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut Slot) {
     if !rule.race && rule.replay_fraction > 0.0 && slot.rng.random::<f32>() < rule.replay_fraction {
         if let Some((drone, previous_action)) = slot.passes.draw(&mut slot.rng) {
@@ -776,18 +787,31 @@ fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut
     let line = progress.line();
     let stage1 =
         !rule.race && rule.stage1_fraction > 0.0 && slot.rng.random::<f32>() < rule.stage1_fraction;
+    let stage2 = !rule.race
+        && !stage1
+        && rule.stage2_fraction > 0.0
+        && slot.rng.random::<f32>() < rule.stage2_fraction;
     let on_line = !rule.race
         && !stage1
+        && !stage2
         && rule.racing_line_fraction > 0.0
         && slot.rng.random::<f32>() < rule.racing_line_fraction;
     let mode = if stage1 { SpawnMode::Stage1 } else { rule.mode };
     let [mut spawn, opponent] = if on_line {
         let s = racing_line::paper_spawn(slot.rng.random_range(0..racing_line::paper_nodes()));
         [s, s]
+    } else if stage2 {
+        let [ego, opponent] = SpawnMode::Stage2.draw(&world.track, line, &mut slot.rng);
+        let s = if slot.rng.random::<bool>() {
+            ego
+        } else {
+            opponent
+        };
+        [s, s]
     } else {
         mode.draw(&world.track, line, &mut slot.rng)
     };
-    if rule.max_speed_mps > 0.0 && !stage1 && !on_line && !rule.race {
+    if rule.max_speed_mps > 0.0 && !stage1 && !stage2 && !on_line && !rule.race {
         let speed = slot.rng.random_range(0.0..rule.max_speed_mps);
         let forward = spawn.state.attitude.rotate(Vec3::new(1.0, 0.0, 0.0));
         spawn.state.velocity_mps = forward.scale(speed);

@@ -44,6 +44,7 @@ def make_vec_env(
     velocity_scale_mps: float = 3.0,
     spawn_speed_mps: float = 0.0,
     stage1_fraction: float = 0.0,
+    stage2_fraction: float = 0.0,
     replay_fraction: float = 0.0,
     racing_line_fraction: float = 0.0,
     reward_weights: dict[str, float] | None = None,
@@ -72,10 +73,13 @@ def make_vec_env(
             shipped policies' is ``Policy(path).velocity_scale_mps``).
         spawn_speed_mps: time trial: highest initial speed along the spawn's heading.
         stage1_fraction: time trial: share of respawns at the paper's fixed start.
+        stage2_fraction: time trial: share of the respawns neither replayed nor at the
+            fixed start at the paper's stage-2 start (at rest, 2 m or 1 m before a random
+            gate), where a stage-1 policy starts as stage 2's opponent.
         replay_fraction: time trial: share of respawns from the state right after one of
             the env's own recent gate passes (when it has one; Song et al. 2023).
         racing_line_fraction: time trial: share of the other respawns (neither replayed nor
-            at the fixed start) on the ``paper`` preset's time-optimal lap, moving as the
+            at the fixed start nor stage-2) on the ``paper`` preset's time-optimal lap, moving as the
             optimum does there (``tools/min_lap_time.py``; only its states are used).
         reward_weights: the reward's weights that differ from the paper's, by term name
             (``progress`` 0.5, ``command`` 0.0005, ``smoothness`` 0.0002, ``pass`` 1,
@@ -101,6 +105,7 @@ def make_vec_env(
         velocity_scale_mps=velocity_scale_mps,
         spawn_speed_mps=spawn_speed_mps,
         stage1_fraction=stage1_fraction,
+        stage2_fraction=stage2_fraction,
         replay_fraction=replay_fraction,
         racing_line_fraction=racing_line_fraction,
         reward_weights=reward_weights,
