@@ -268,6 +268,22 @@ impl<'w> Controller<'w> {
         self.observe_next(own, opponent).2.map(|(obs, _)| obs)
     }
 
+    /// [`Controller::peek_observation`] and whether that step is folded: its network output
+    /// comes back with the motors renumbered by [`Controller::mirror`]
+    /// ([`crate::mirror::unfold_action`]).
+    pub fn peek_folded_observation(
+        &self,
+        own: &VehicleState,
+        opponent: Option<&VehicleState>,
+    ) -> Result<(Observation, bool), ObservationError> {
+        self.observe_next(own, opponent).2
+    }
+
+    /// The track's mirror the controller folds by, when the blob's pipeline is folded.
+    pub fn mirror(&self) -> Option<&TrackMirror> {
+        self.fold.as_ref()
+    }
+
     fn fail_safe(&mut self, fault: StepFault, gate_event: GateEvent) -> StepOutput {
         self.fault_count = self.fault_count.saturating_add(1);
         StepOutput {

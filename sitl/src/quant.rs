@@ -2,16 +2,18 @@
 //! original's on the same observations, and what that does to the race.
 //!
 //! The action error is measured on the observation sequences of races the **f32** policy
-//! flies: each step, the f32 controller's next observation ([`Controller::peek_observation`])
-//! also goes through the int8 policy, which keeps its own recurrent state, reset when the
-//! f32 controller is. Errors are between the clipped actions (what the motors get), per
-//! component. The race metrics of the int8 blob come from flying it itself, with the same
+//! flies: each step, the f32 controller's next observation
+//! ([`Controller::peek_folded_observation`]) also goes through the int8 policy, which keeps
+//! its own recurrent state, reset when the f32 controller is. Errors are between the clipped
+//! network outputs (what the motors get, before a folded step's renumbering, which permutes
+//! both alike), per component. The race metrics of the int8 blob come from flying it itself, with the same
 //! seeds ([`crate::eval::report`]).
 
 use crate::eval::{EvalConfig, Report};
 use crate::pilot::{Pilot, PilotSpec};
 use crate::referee::{EpisodeMetrics, run_episode};
 use firmware_core::blob::{AlignedBytes, Blob, WeightDtype, convert_bytes};
+use firmware_core::mirror::unfold_action;
 use firmware_core::policy::{Policy, PolicyState};
 use firmware_core::track::Track;
 use firmware_core::vehicle::{MotorCommand, VehicleState};
@@ -53,16 +55,18 @@ struct Shadow<'a> {
 
 impl Pilot for Shadow<'_> {
     fn command(&mut self, own: &VehicleState, opponent: Option<&VehicleState>) -> MotorCommand {
-        let obs: Option<Observation> = self.flying.peek_observation(own, opponent).ok();
+        let peeked: Option<(Observation, bool)> =
+            self.flying.peek_folded_observation(own, opponent).ok();
         let out = self.flying.step(own, opponent);
-        if let (Some(obs), None) = (obs, out.fault) {
+        if let (Some((obs, folded)), None) = (peeked, out.fault) {
             let f32_mean = self.flying.policy().act(&obs, &mut self.f32_state);
             if let (Some(mean), Some(f32_mean)) = (self.int8.act(&obs, &mut self.state), f32_mean) {
                 self.steps += 1;
-                if f32_mean.map(|m| m.clamp(-1.0, 1.0)) != out.action {
+                let clipped = f32_mean.map(|m| m.clamp(-1.0, 1.0));
+                if unfold_action(self.flying.mirror(), folded, &clipped) != out.action {
                     self.replay_mismatches += 1;
                 }
-                for ((a, q), m) in out.action.iter().zip(mean).zip(f32_mean) {
+                for ((a, q), m) in clipped.iter().zip(mean).zip(f32_mean) {
                     let d = (a - q.clamp(-1.0, 1.0)).abs();
                     self.max = self.max.max(d);
                     self.sum += f64::from(d);
@@ -234,6 +238,27 @@ mod tests {
         assert!(c.blob_bytes[1] * 3 < c.blob_bytes[0]);
         assert_eq!(c.f32_report.episodes, 3);
         assert_eq!(c.int8_report.episodes, 3);
+    }
+
+    /// A folded blob (`policies/stage1.blob`): the controller renumbers the motors of the
+    /// steps flying g3-g5, and the replay beside it follows (the self-check counted every
+    /// such step as a mismatch before).
+    #[test]
+    fn a_folded_policy_replays_exactly() {
+        let blob = std::fs::read(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../policies/stage1.blob"
+        ))
+        .expect("the shipped stage-1 policy");
+        let header = Blob::parse(AlignedBytes::new(&blob).as_bytes())
+            .expect("parse")
+            .header()
+            .observation;
+        assert!(header.is_folded());
+        // From the stage-1 spawn the first lap reaches g3 within 4 s.
+        let c = compare(&blob, None, &config(1)).expect("compare");
+        assert_eq!(c.action_error.steps, 300);
+        assert_eq!(c.action_error.replay_mismatches, 0);
     }
 
     #[test]
