@@ -6,7 +6,7 @@
 //! - `ppo_update/minibatch_102400_{burn,fused}`: one minibatch step at RSL-RL's minibatch
 //!   size (4,096 envs × 100 steps / 4) with `burn`'s autodiff and Adam, and with the fused
 //!   update ([`host_trainer::fused`]), both with the passes on two threads, in the same run;
-//! - `train_iteration/stage1`: one PPO iteration of `configs/stage1.toml` end to end
+//! - `train_iteration/stage1`: one PPO iteration of `configs/stage1_finetune.toml` end to end
 //!   (rollout of 512 envs × 50 steps with the deployed network, then 5 epochs × 2
 //!   minibatches of 12,800), checkpoint load and save included.
 //!
@@ -27,7 +27,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use sitl::env::{EnvConfig, OBS_DIM, VecEnv};
 
-const STAGE1: &str = include_str!("../configs/stage1.toml");
+const STAGE1: &str = include_str!("../configs/stage1_finetune.toml");
 
 fn learner() -> Learner {
     let device = Device::flex().autodiff();

@@ -5,7 +5,8 @@
 //! The paper's values live in code too: every section's `Default` is the paper's stage 1
 //! (RSL-RL's PPO settings), [`TrainConfig::paper`] is the whole paper stage-1 run
 //! (`configs/stage1_paper.toml`) and [`TrainConfig::ours`] this project's stage-1 pipeline
-//! (`configs/stage1.toml`); a test holds each preset equal to its TOML file.
+//! (`configs/stage1.toml`, PPO from a random network); a test holds each preset equal to its
+//! TOML file.
 
 use serde::{Deserialize, Serialize};
 use sitl::env::{Competition, RewardWeights};
@@ -276,12 +277,18 @@ pub struct EnvSection {
     /// Share of respawns at the paper's stage-1 spawn whatever `spawn` is. Default 0.
     #[serde(default)]
     pub stage1_fraction: f32,
+    /// Share of the respawns that are neither replayed nor stage-1 at the paper's stage-2
+    /// spawn, at rest 2 m or 1 m before a random gate (`sitl::env::EnvConfig::stage2_fraction`):
+    /// where the stage-1 policy starts when it is stage 2's opponent. Paper: 0. Default 0
+    /// (left out of the canonical TOML at 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub stage2_fraction: f32,
     /// Share of respawns from a state after one of the env's own recent gate passes
     /// (`sitl::env::EnvConfig::replay_fraction`). Paper: 0. Default 0 (left out of the
     /// canonical TOML at 0, so older configs keep their hash).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub replay_fraction: f32,
-    /// Share of the other respawns (neither replayed nor stage-1) on the `paper` preset's
+    /// Share of the other respawns (neither replayed nor stage-1 nor stage-2) on the `paper` preset's
     /// time-optimal lap (`sitl::env::EnvConfig::racing_line_fraction`). Paper: 0. Default 0
     /// (left out of the canonical TOML at 0).
     #[serde(default, skip_serializing_if = "is_zero")]

@@ -109,9 +109,10 @@ mod tests {
     use burn::tensor::Device;
     use std::path::Path;
 
-    /// stage1.toml with a small guard, and the shipped student as its actor.
+    /// stage1_finetune.toml with a small guard, and the shipped student as its actor.
     fn student_learner() -> (TrainConfig, Architecture, Learner) {
-        let mut config = TrainConfig::parse(include_str!("../configs/stage1.toml")).unwrap();
+        let mut config =
+            TrainConfig::parse(include_str!("../configs/stage1_finetune.toml")).unwrap();
         config.guard = Some(Guard {
             envs: 64,
             warmup_steps: 10,

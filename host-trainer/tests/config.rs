@@ -5,6 +5,7 @@ use host_trainer::config::{ConfigError, TrainConfig};
 use sitl::env::RewardWeights;
 
 const STAGE1: &str = include_str!("../configs/stage1.toml");
+const FINETUNE: &str = include_str!("../configs/stage1_finetune.toml");
 const PAPER: &str = include_str!("../configs/stage1_paper.toml");
 
 #[test]
@@ -35,6 +36,9 @@ fn shipped_configs_parse() {
     assert_eq!(paper.reward, RewardWeights::default());
     assert_ne!(ours.hash(), paper.hash());
     assert_eq!(ours.hash(), TrainConfig::parse(STAGE1).unwrap().hash());
+    // Ours learns from a random network too; the imitation pipeline stays reachable.
+    assert!(ours.warm_start.is_none());
+    assert!(TrainConfig::parse(FINETUNE).unwrap().warm_start.is_some());
 }
 
 #[test]
@@ -117,6 +121,9 @@ fn typos_and_bad_values_are_errors() {
             "{bad}"
         );
     }
+    let bad = STAGE1.replace("stage2_fraction = 0.25", "stage2_fraction = 1.5");
+    let e = TrainConfig::parse(&bad).unwrap_err().to_string();
+    assert!(e.contains("stage2_fraction"), "{e}");
     let bad = STAGE1.replace("gamma = 0.99", "gamma = 1.5");
     assert!(matches!(
         TrainConfig::parse(&bad),
@@ -140,15 +147,18 @@ fn the_presets_in_code_are_the_toml_presets() {
 #[test]
 fn the_sigma_ceiling_falls_linearly_between_its_iterations() {
     let decay = "max_std = 1.0\nmax_std_decay = { final_std = 0.4, from_iteration = 100, to_iteration = 400 }\ninit_std";
-    let c = TrainConfig::parse(&STAGE1.replacen("init_std", decay, 1)).unwrap();
+    let c = TrainConfig::parse(&FINETUNE.replacen("init_std", decay, 1)).unwrap();
     let at = |i| c.ppo.max_std_at(i).unwrap();
     for (i, want) in [(0, 1.0), (100, 1.0), (250, 0.7), (400, 0.4), (10_000, 0.4)] {
         assert!((at(i) - want).abs() < 1e-6, "iteration {i}: {}", at(i));
     }
     // Without a decay the ceiling is max_std throughout; without max_std there is none.
-    let fixed = TrainConfig::parse(&STAGE1.replacen("init_std", "max_std = 1.0\ninit_std", 1));
+    let fixed = TrainConfig::parse(&FINETUNE.replacen("init_std", "max_std = 1.0\ninit_std", 1));
     assert_eq!(fixed.unwrap().ppo.max_std_at(5_000), Some(1.0));
-    assert_eq!(TrainConfig::parse(STAGE1).unwrap().ppo.max_std_at(0), None);
+    assert_eq!(
+        TrainConfig::parse(FINETUNE).unwrap().ppo.max_std_at(0),
+        None
+    );
     for bad in [
         // No ceiling to lower.
         "max_std_decay = { final_std = 0.4, from_iteration = 1, to_iteration = 4 }\ninit_std",
@@ -158,7 +168,7 @@ fn the_sigma_ceiling_falls_linearly_between_its_iterations() {
     ] {
         assert!(
             matches!(
-                TrainConfig::parse(&STAGE1.replacen("init_std", bad, 1)),
+                TrainConfig::parse(&FINETUNE.replacen("init_std", bad, 1)),
                 Err(ConfigError::Invalid(_))
             ),
             "{bad}"
@@ -215,20 +225,28 @@ fn the_pass_weight_falls_linearly_between_its_iterations() {
 
 #[test]
 fn mirror_augmentation_is_a_feed_forward_option_that_keeps_old_hashes() {
-    let on =
-        TrainConfig::parse(&STAGE1.replacen("init_std", "mirror_augmentation = true\ninit_std", 1))
-            .unwrap();
+    let on = TrainConfig::parse(&FINETUNE.replacen(
+        "init_std",
+        "mirror_augmentation = true\ninit_std",
+        1,
+    ))
+    .unwrap();
     assert!(on.ppo.mirror_augmentation);
-    assert!(!TrainConfig::parse(STAGE1).unwrap().ppo.mirror_augmentation);
+    assert!(
+        !TrainConfig::parse(FINETUNE)
+            .unwrap()
+            .ppo
+            .mirror_augmentation
+    );
     // Off is the default and left out of the canonical TOML: configs written before the
     // option hash as they did; on, it is part of the hash.
-    let off = TrainConfig::parse(&STAGE1.replacen(
+    let off = TrainConfig::parse(&FINETUNE.replacen(
         "init_std",
         "mirror_augmentation = false\ninit_std",
         1,
     ))
     .unwrap();
-    assert_eq!(off.hash(), TrainConfig::parse(STAGE1).unwrap().hash());
+    assert_eq!(off.hash(), TrainConfig::parse(FINETUNE).unwrap().hash());
     assert_ne!(on.hash(), off.hash());
     let round_trip = TrainConfig::parse(&toml::to_string(&on).unwrap()).unwrap();
     assert_eq!(round_trip, on);
@@ -247,14 +265,17 @@ fn mirror_augmentation_is_a_feed_forward_option_that_keeps_old_hashes() {
 fn the_mirror_teacher_is_checked_and_hashed() {
     let teacher =
         "mirror_teacher = { gates = [0, 2, 4], coef = 0.5, from_iteration = 100 }\ninit_std";
-    let on = TrainConfig::parse(&STAGE1.replacen("init_std", teacher, 1)).unwrap();
+    let on = TrainConfig::parse(&FINETUNE.replacen("init_std", teacher, 1)).unwrap();
     let t = on.ppo.mirror_teacher.clone().unwrap();
     assert_eq!(
         (t.gates, t.coef, t.from_iteration),
         (vec![0, 2, 4], 0.5, 100)
     );
-    assert_eq!(TrainConfig::parse(STAGE1).unwrap().ppo.mirror_teacher, None);
-    assert_ne!(on.hash(), TrainConfig::parse(STAGE1).unwrap().hash());
+    assert_eq!(
+        TrainConfig::parse(FINETUNE).unwrap().ppo.mirror_teacher,
+        None
+    );
+    assert_ne!(on.hash(), TrainConfig::parse(FINETUNE).unwrap().hash());
     let round_trip = TrainConfig::parse(&toml::to_string(&on).unwrap()).unwrap();
     assert_eq!(round_trip, on);
     for (bad, why) in [
@@ -263,7 +284,7 @@ fn the_mirror_teacher_is_checked_and_hashed() {
         ("gates = [1], coef = 0.0", "coef"),
         ("gates = [1], coef = nan", "coef"),
     ] {
-        let text = STAGE1.replacen(
+        let text = FINETUNE.replacen(
             "init_std",
             &format!("mirror_teacher = {{ {bad} }}\ninit_std"),
             1,
@@ -274,7 +295,7 @@ fn the_mirror_teacher_is_checked_and_hashed() {
             "{bad}: {e}"
         );
     }
-    let both = STAGE1.replacen(
+    let both = FINETUNE.replacen(
         "init_std",
         "mirror_augmentation = true\nmirror_teacher = { gates = [1], coef = 1.0 }\ninit_std",
         1,
@@ -324,8 +345,8 @@ fn the_mirror_fold_is_checked_hashed_and_reaches_the_spec() {
         e.contains("fold_mirror") && e.contains("mirror_augmentation"),
         "{e}"
     );
-    // stage1.toml warm-starts from the baseline, whose labels are the world's motors.
-    let e = TrainConfig::parse(&STAGE1.replacen("[env]\n", "[env]\nfold_mirror = true\n", 1))
+    // stage1_finetune.toml warm-starts from the baseline, whose labels are the world's motors.
+    let e = TrainConfig::parse(&FINETUNE.replacen("[env]\n", "[env]\nfold_mirror = true\n", 1))
         .unwrap_err()
         .to_string();
     assert!(e.contains("fold_mirror") && e.contains("warm start"), "{e}");

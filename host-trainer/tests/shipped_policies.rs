@@ -71,14 +71,48 @@ fn the_folded_policy_is_the_committed_recipe_and_its_finish() {
     undone.ppo.max_std_decay = fold1.ppo.max_std_decay.clone();
     assert_eq!(undone, fold1);
     let (raw, _, _) = shipped_blob("stage1_fold", "policies/stage1_fold/config.toml");
-    let bytes = AlignedBytes::new(&raw);
-    assert!(
-        Blob::parse(bytes.as_bytes())
-            .unwrap()
-            .header()
-            .observation
-            .is_folded()
+    assert!(folded(&raw));
+}
+
+/// `policies/stage1.blob` (Table 1 row A) is PPO from a random network: the committed
+/// `configs/stage1.toml` and its seed, exported at its last iteration, folded as it was
+/// trained; it flies the referee's time trial exactly as `policies/stage1/eval.json`
+/// records, and that record meets issue "learn"'s targets (success >= 0.95, crashes <=
+/// 0.05 /s, best lap <= 7.8 s), which are all it is held to.
+#[test]
+fn the_stage1_policy_is_the_shipped_config_from_scratch_and_flies_as_recorded() {
+    let (raw, config, iterations) = shipped_blob("stage1", "host-trainer/configs/stage1.toml");
+    assert!(config.warm_start.is_none(), "no imitation");
+    assert_eq!(iterations, config.run.iterations);
+    assert_eq!(
+        TrainConfig::load(&root().join("policies/stage1/config.toml")).unwrap(),
+        config
     );
+    assert!(folded(&raw));
+
+    let recorded: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join("policies/stage1/eval.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(recorded["spawn"].as_str(), Some("stage1"));
+    assert_eq!(recorded["preset"].as_str(), Some("paper"));
+    let eval = EvalConfig {
+        preset: Preset::paper(),
+        episodes: recorded["episodes"].as_u64().unwrap() as u32,
+        seconds: recorded["episode_seconds"].as_f64().unwrap() as f32,
+        seed: recorded["seed"].as_u64().unwrap(),
+        spawn: Some(SpawnMode::Stage1),
+    };
+    assert!(eval.episodes >= 20 && eval.seconds == 45.0);
+    let r = report(&PilotSpec::from_blob("stage1", &raw).unwrap(), None, &eval);
+    println!("{}", r.table());
+    assert_eq!(r.gates_passed, recorded["gates_passed"].as_u64().unwrap());
+    assert_eq!(r.crashes, recorded["crashes"].as_u64().unwrap());
+    let lap = r.best_lap_s.expect("a complete lap");
+    assert!((lap - recorded["best_lap_s"].as_f64().unwrap()).abs() < 1e-4);
+    assert!(r.success_rate >= 0.95, "success {}", r.success_rate);
+    assert!(r.crash_rate <= 0.05, "crashes {} /s", r.crash_rate);
+    assert!(lap <= 7.8, "best lap {lap} s");
 }
 
 #[test]
@@ -86,6 +120,16 @@ fn shipped_blobs_are_their_configs_and_fly_as_recorded() {
     for &(blob, config, lap) in SHIPPED {
         check(blob, config, lap);
     }
+}
+
+/// Whether the blob `raw` observes folded (observation pipeline version 2).
+fn folded(raw: &[u8]) -> bool {
+    let bytes = AlignedBytes::new(raw);
+    Blob::parse(bytes.as_bytes())
+        .unwrap()
+        .header()
+        .observation
+        .is_folded()
 }
 
 /// The blob `policies/{name}.blob` and the config at `config` (from the repository root),

@@ -3,8 +3,8 @@
 //! [`TrainConfig::ours`] (`host-trainer/tests/config.rs` holds each equal to its TOML file).
 
 use super::{
-    EnvSection, PpoConfig, RunConfig, TrainConfig, UpdateKind, WarmStart, default_eval_every,
-    default_eval_races, default_max_learning_rate, default_min_learning_rate,
+    EnvSection, PassDecay, PpoConfig, RunConfig, StdDecay, TrainConfig, UpdateKind, WarmStart,
+    default_eval_every, default_eval_races, default_max_learning_rate, default_min_learning_rate,
     default_velocity_scale, one,
 };
 use sitl::env::RewardWeights;
@@ -39,17 +39,20 @@ impl TrainConfig {
         }
     }
 
-    /// This project's stage-1 pipeline (`configs/stage1.toml`): 512 envs spawned along the
-    /// track at up to 8 m/s (a fifth at the paper's spawn), the own velocity observed at
-    /// 12 m/s full scale, 50 steps per env, 2 minibatches, KL target 0.002, no entropy bonus,
-    /// σ₀ 0.2 and a hover-biased output, after the imitation warm start
-    /// ([`WarmStart::default`]); 900 iterations.
+    /// This project's stage-1 pipeline (`configs/stage1.toml`), PPO from a random network:
+    /// 512 envs × 100 steps spawned along the track at up to 8 m/s (a fifth at the paper's
+    /// spawn, 30 % replaying states after gate passes), the figure-8 folded by its mirror
+    /// symmetry, the own velocity observed at 12 m/s full scale, lr 3e-4, σ₀ 0.3 under a
+    /// ceiling falling from 1 to 0.1 over iterations 800-2000, a hover-biased output, crash
+    /// weight 1 and the pass weight falling from 1 to 0 over iterations 1700-2000; 2,500
+    /// iterations (128 M samples).
     pub fn ours() -> Self {
         Self {
             run: RunConfig {
                 name: "stage1".into(),
-                iterations: 900,
-                checkpoint_every: 20,
+                iterations: 2500,
+                checkpoint_every: 10,
+                eval_every: 20,
                 ..RunConfig::default()
             },
             env: EnvSection {
@@ -58,23 +61,34 @@ impl TrainConfig {
                 velocity_scale_mps: 12.0,
                 spawn_speed_mps: 8.0,
                 stage1_fraction: 0.2,
-                replay_fraction: 0.0,
+                stage2_fraction: 0.25,
+                replay_fraction: 0.3,
                 racing_line_fraction: 0.0,
-                fold_mirror: false,
+                fold_mirror: true,
                 ..EnvSection::default()
             },
             ppo: PpoConfig {
-                steps_per_env: 50,
-                minibatches: 2,
-                entropy_coef: 0.0,
-                desired_kl: Some(0.002),
-                init_std: 0.2,
+                learning_rate: 3e-4,
+                max_std: Some(1.0),
+                max_std_decay: Some(StdDecay {
+                    final_std: 0.1,
+                    from_iteration: 800,
+                    to_iteration: 2000,
+                }),
+                init_std: 0.3,
                 init_hover: true,
                 ..PpoConfig::default()
             },
-            reward: RewardWeights::default(),
-            warm_start: Some(WarmStart::default()),
-            pass_decay: None,
+            reward: RewardWeights {
+                crash: 1.0,
+                ..RewardWeights::default()
+            },
+            warm_start: None,
+            pass_decay: Some(PassDecay {
+                final_weight: 0.0,
+                from_iteration: 1700,
+                to_iteration: 2000,
+            }),
             guard: None,
             race: None,
         }
@@ -112,6 +126,7 @@ impl Default for EnvSection {
             velocity_scale_mps: default_velocity_scale(),
             spawn_speed_mps: 0.0,
             stage1_fraction: 0.0,
+            stage2_fraction: 0.0,
             replay_fraction: 0.0,
             racing_line_fraction: 0.0,
             fold_mirror: false,
@@ -151,7 +166,7 @@ impl Default for PpoConfig {
 }
 
 impl Default for WarmStart {
-    /// The stage-1 student's (`configs/stage1.toml`): 40 DAgger rounds of 50 steps of the
+    /// The stage-1 student's (`configs/stage1_finetune.toml`, `configs/stage1_imitation.toml`): 40 DAgger rounds of 50 steps of the
     /// classical baseline at 9 m/s, 3 epochs of minibatches of 2,048 over the last 400,000
     /// samples at lr 1e-3, the student's actions with σ 0.1 noise, then 30 critic-only
     /// iterations; no refinement, no round selection.
