@@ -3,7 +3,7 @@
 
 usage: python3 tools/table1.py [POLICIES_DIR]
 
-Reads POLICIES_DIR/stage1_guarded/eval.json for row A (a time trial from the stage-1
+Reads POLICIES_DIR/stage1/eval.json for row A (a time trial from the stage-1
 spawn) and POLICIES_DIR/stage2/eval.json (row G) and POLICIES_DIR/stage2_{B..F}/eval.json
 (the ablations) for the races, each written by `sitl eval --json` (20 or more seeded 45 s
 episodes; the commands are in docs/RESULTS.md). Prints a Markdown table: every metric with
@@ -39,7 +39,7 @@ NAMES = {
     "F": "(F) 2-layer LSTM + 3-layer MLP",
     "G": "(G) 2-layer LSTM + 4-layer MLP",
 }
-REPORTS = {"A": "stage1_guarded", "G": "stage2"}
+REPORTS = {"A": "stage1", "G": "stage2"}
 
 
 def interval(value, ci):
