@@ -195,7 +195,11 @@ fn race_with_the_shipped_defaults_prints_the_row_and_writes_its_files() {
     assert!(ok, "{err}");
     assert!(out.contains("| success rate"), "{out}");
     assert!(out.contains("x real time"), "{out}");
-    assert!(err.contains("policies/stage1_"), "a shipped ego: {err}");
+    // The shipped opponent: row A learned from a random network.
+    assert!(
+        err.contains("vs opponent") && err.contains("policies/stage1.blob (stage1)"),
+        "the shipped opponent: {err}"
+    );
     assert!(std::fs::metadata(&tlog).unwrap().len() > 0);
     assert!(std::fs::read_to_string(&plot).unwrap().starts_with("<svg"));
     let j: serde_json::Value =
