@@ -538,10 +538,22 @@ impl PpoConfig {
         let Some(d) = &self.max_std_decay else {
             return Some(max);
         };
-        let span = d.to_iteration.saturating_sub(d.from_iteration).max(1) as f32;
-        let t = (iteration.saturating_sub(d.from_iteration) as f32 / span).min(1.0);
-        Some(max + (d.final_std - max) * t)
+        Some(linear_fall(
+            max,
+            d.final_std,
+            d.from_iteration,
+            d.to_iteration,
+            iteration,
+        ))
     }
+}
+
+/// `start` until iteration `from`, then linearly to `end` at iteration `to` and after (the
+/// σ ceiling's and the pass weight's schedules).
+fn linear_fall(start: f32, end: f32, from: u32, to: u32, iteration: u32) -> f32 {
+    let span = to.saturating_sub(from).max(1) as f32;
+    let t = (iteration.saturating_sub(from) as f32 / span).min(1.0);
+    start + (end - start) * t
 }
 
 impl TrainConfig {
@@ -551,10 +563,14 @@ impl TrainConfig {
         let Some(d) = &self.pass_decay else {
             return self.reward;
         };
-        let span = d.to_iteration.saturating_sub(d.from_iteration).max(1) as f32;
-        let t = (iteration.saturating_sub(d.from_iteration) as f32 / span).min(1.0);
         RewardWeights {
-            pass: self.reward.pass + (d.final_weight - self.reward.pass) * t,
+            pass: linear_fall(
+                self.reward.pass,
+                d.final_weight,
+                d.from_iteration,
+                d.to_iteration,
+                iteration,
+            ),
             ..self.reward
         }
     }
