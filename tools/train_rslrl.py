@@ -104,6 +104,12 @@ def parser() -> argparse.ArgumentParser:
                    help="share of the other respawns on the paper preset's time-optimal lap")
     p.add_argument("--reward-weight", action="append", default=[], metavar="TERM=W",
                    help="a reward weight other than the paper's, e.g. crash=1 (repeatable)")
+    p.add_argument("--pass-decay", type=float, nargs=3, metavar=("FINAL", "FROM", "TO"),
+                   help="the pass weight falls linearly to FINAL between iterations FROM and "
+                        "TO (host-trainer's [pass_decay]; set between rollouts)")
+    p.add_argument("--fold-mirror", action="store_true",
+                   help="fold the figure-8 onto one half by its mirror symmetry (host-trainer's "
+                        "env.fold_mirror); the blob records the fold")
     p.add_argument("--max-std", type=float,
                    help="σ ceiling: the std parameter is clamped to it after every update "
                         "(host-trainer's ppo.max_std; RSL-RL has none)")
@@ -226,6 +232,7 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         kw["opponent"] = args.opponent
     else:
         kw.update(
+            fold_mirror=args.fold_mirror,
             spawn=args.spawn,
             spawn_speed_mps=args.spawn_speed_mps,
             stage1_fraction=args.stage1_fraction,
@@ -233,6 +240,14 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
             replay_fraction=args.replay_fraction,
             racing_line_fraction=args.racing_line_fraction,
         )
+    weights = reward_overrides(args)
+    if weights:
+        kw["reward_weights"] = weights
+    return kw
+
+
+def reward_overrides(args: argparse.Namespace) -> dict[str, float]:
+    """The reward weights ``--reward-weight`` sets (the others are the paper's)."""
     weights = {}
     for item in args.reward_weight:
         term, _, value = item.partition("=")
@@ -240,9 +255,25 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
             weights[term] = float(value)
         except ValueError:
             sys.exit(f"error: --reward-weight {item}: expected TERM=WEIGHT, e.g. crash=1")
-    if weights:
-        kw["reward_weights"] = weights
-    return kw
+    return weights
+
+
+def linear_fall(start: float, end: float, first: float, last: float, iteration: int) -> float:
+    """``start`` until iteration ``first``, then linearly to ``end`` at ``last`` and after
+    (host-trainer's ``linear_fall``: the σ ceiling's and the pass weight's schedules)."""
+    t = min(max(iteration - first, 0.0) / max(last - first, 1.0), 1.0)
+    return start + (end - start) * t
+
+
+def rewards_at(args: argparse.Namespace, iteration: int) -> dict[str, float]:
+    """The reward weights of the rollout of iteration ``iteration`` (0-based) that differ
+    from the paper's: ``--reward-weight``'s, the pass weight lowered by ``--pass-decay``
+    (host-trainer's ``TrainConfig::reward_at``)."""
+    weights = reward_overrides(args)
+    if args.pass_decay is not None:
+        final, first, last = args.pass_decay
+        weights["pass"] = linear_fall(weights.get("pass", 1.0), final, first, last, iteration)
+    return weights
 
 
 def max_std_at(args: argparse.Namespace, iteration: int) -> float | None:
@@ -252,9 +283,8 @@ def max_std_at(args: argparse.Namespace, iteration: int) -> float | None:
         return None
     if args.max_std_decay is None:
         return args.max_std
-    final, start, end = args.max_std_decay
-    t = min(max(iteration - start, 0.0) / max(end - start, 1.0), 1.0)
-    return args.max_std + (final - args.max_std) * t
+    final, first, last = args.max_std_decay
+    return linear_fall(args.max_std, final, first, last, iteration)
 
 
 def export_blob(policy: torch.nn.Module, args: argparse.Namespace, name: str) -> Path:
@@ -266,6 +296,7 @@ def export_blob(policy: torch.nn.Module, args: argparse.Namespace, name: str) ->
         "host-trainer", "import-rslrl", "--safetensors", str(st), "--row", args.row,
         "--out", str(blob), "--name", f"rsl-rl {args.row} seed {args.seed}",
         "--velocity-scale-mps", str(args.velocity_scale_mps),
+        *(["--fold-mirror"] if args.fold_mirror else []),
     )  # fmt: skip
     return blob
 
@@ -334,6 +365,8 @@ def main(argv: list[str] | None = None) -> int:
     # the rollouts after a resume are not the first ones again.
     env_kw = env_kwargs(args) | {"seed": args.seed + start_iteration}
     env = VecEnv(num_envs=args.num_envs, **env_kw)
+    if args.pass_decay is not None:
+        env.set_reward_weights(rewards_at(args, start_iteration))
     cfg = paper_train_cfg(args.row)
     cfg["num_steps_per_env"] = args.steps_per_env
     cfg["save_interval"] = max(args.iterations, 1)
@@ -405,6 +438,8 @@ def main(argv: list[str] | None = None) -> int:
         t1 = time.perf_counter()
         clock["iteration"] += 1
         it = clock["iteration"]
+        if args.pass_decay is not None:  # the next rollout's weights
+            env.set_reward_weights(rewards_at(args, it))
         totals = env.take_totals()
         sim_s = max(totals["steps"], 1) * env.step_dt
         row: dict[str, Any] = {
@@ -422,6 +457,8 @@ def main(argv: list[str] | None = None) -> int:
             "learning_rate": runner.alg.learning_rate,
             "std": float(policy.std.detach().mean()),
         }
+        if args.pass_decay is not None:  # the weight of the rollout just learned from
+            row["pass_weight"] = rewards_at(args, it - 1)["pass"]
         if args.eval_every and it % args.eval_every == 0 and it < args.iterations:
             t2 = time.perf_counter()
             e = referee(export_blob(policy, args, "eval"), args)

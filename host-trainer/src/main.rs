@@ -105,6 +105,11 @@ enum Command {
         /// the controller observes as training did.
         #[arg(long, default_value_t = 3.0)]
         velocity_scale_mps: f32,
+        /// The actor was trained on observations folded by the track's mirror
+        /// (`make_vec_env(fold_mirror=True)`, host-trainer's `env.fold_mirror`); the blob records
+        /// it so the controller folds as training did.
+        #[arg(long)]
+        fold_mirror: bool,
     },
     /// Write a blob's actor as an RSL-RL safetensors file (RSL-RL's parameter names), to
     /// start an RSL-RL run from it; the inverse of import-rslrl.
@@ -179,7 +184,15 @@ fn main() -> ExitCode {
             out,
             name,
             velocity_scale_mps,
-        } => import_rslrl(&safetensors, row, &out, &name, velocity_scale_mps),
+            fold_mirror,
+        } => import_rslrl(
+            &safetensors,
+            row,
+            &out,
+            &name,
+            velocity_scale_mps,
+            fold_mirror,
+        ),
         Command::ExportRslrl { blob, out, std } => export_rslrl(&blob, &out, std),
     };
     match result {
@@ -304,6 +317,7 @@ fn import_rslrl(
     out: &Path,
     name: &str,
     velocity_scale_mps: f32,
+    fold_mirror: bool,
 ) -> Result<(), String> {
     let row =
         TableRow::from_letter(r).ok_or_else(|| format!("--row {r}: not a Table 1 row A-G"))?;
@@ -312,7 +326,7 @@ fn import_rslrl(
             "--velocity-scale-mps {velocity_scale_mps}: expected a positive speed"
         ));
     }
-    let mut observation = ObservationSpec::paper(row.observation_layout());
+    let mut observation = ObservationSpec::paper(row.observation_layout()).with_fold(fold_mirror);
     observation.velocity_scale_mps = velocity_scale_mps;
     let arch = Architecture::table1(row);
     let bytes =

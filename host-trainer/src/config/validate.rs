@@ -136,17 +136,15 @@ fn warm_start(c: &TrainConfig) -> Result<(), ConfigError> {
 }
 
 fn env_ranges(c: &TrainConfig) -> Result<(), ConfigError> {
-    if !(0.0..=1.0).contains(&c.env.stage1_fraction) {
-        return bad("env.stage1_fraction must be in [0, 1]");
-    }
-    if !(0.0..=1.0).contains(&c.env.replay_fraction) {
-        return bad("env.replay_fraction must be in [0, 1]");
-    }
-    if !(0.0..=1.0).contains(&c.env.stage2_fraction) {
-        return bad("env.stage2_fraction must be in [0, 1]");
-    }
-    if !(0.0..=1.0).contains(&c.env.racing_line_fraction) {
-        return bad("env.racing_line_fraction must be in [0, 1]");
+    for (name, share) in [
+        ("stage1_fraction", c.env.stage1_fraction),
+        ("replay_fraction", c.env.replay_fraction),
+        ("stage2_fraction", c.env.stage2_fraction),
+        ("racing_line_fraction", c.env.racing_line_fraction),
+    ] {
+        if !(0.0..=1.0).contains(&share) {
+            return bad(format!("env.{name} must be in [0, 1]"));
+        }
     }
     if !(0.0..=20.0).contains(&c.env.spawn_speed_mps) {
         return bad("env.spawn_speed_mps must be in [0, 20]");

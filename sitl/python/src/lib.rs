@@ -127,6 +127,17 @@ fn reward_weights_from(
     Ok(w)
 }
 
+/// `value` when it is a share in [0, 1], else the `ValueError` naming `name`.
+fn share(name: &str, value: f32) -> PyResult<f32> {
+    if (0.0..=1.0).contains(&value) {
+        Ok(value)
+    } else {
+        Err(PyValueError::new_err(format!(
+            "{name} {value}: expected a share in [0, 1]"
+        )))
+    }
+}
+
 fn bools<'py>(py: Python<'py>, v: impl Iterator<Item = bool>) -> Bound<'py, PyArray1<bool>> {
     v.collect::<Vec<bool>>().into_pyarray(py)
 }
@@ -163,7 +174,7 @@ impl RustVecEnv {
     #[pyo3(signature = (*, task, num_envs, preset, seed, spawn, episode_s,
         random_initial_episode_length, opponent, competition, competition_weight, row,
         velocity_scale_mps, spawn_speed_mps, stage1_fraction, replay_fraction=0.0,
-        racing_line_fraction=0.0, reward_weights=None, stage2_fraction=0.0))]
+        racing_line_fraction=0.0, reward_weights=None, stage2_fraction=0.0, fold_mirror=false))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         task: &str,
@@ -184,6 +195,7 @@ impl RustVecEnv {
         racing_line_fraction: f32,
         reward_weights: Option<std::collections::HashMap<String, f32>>,
         stage2_fraction: f32,
+        fold_mirror: bool,
     ) -> PyResult<Self> {
         let race = match task {
             "time_trial" => false,
@@ -230,25 +242,13 @@ impl RustVecEnv {
                 "spawn_speed_mps {spawn_speed_mps}: expected a speed >= 0"
             )));
         }
-        if !(0.0..=1.0).contains(&stage1_fraction) {
-            return Err(PyValueError::new_err(format!(
-                "stage1_fraction {stage1_fraction}: expected a share in [0, 1]"
-            )));
-        }
-        if !(0.0..=1.0).contains(&stage2_fraction) {
-            return Err(PyValueError::new_err(format!(
-                "stage2_fraction {stage2_fraction}: expected a share in [0, 1]"
-            )));
-        }
-        if !(0.0..=1.0).contains(&replay_fraction) {
-            return Err(PyValueError::new_err(format!(
-                "replay_fraction {replay_fraction}: expected a share in [0, 1]"
-            )));
-        }
-        if !(0.0..=1.0).contains(&racing_line_fraction) {
-            return Err(PyValueError::new_err(format!(
-                "racing_line_fraction {racing_line_fraction}: expected a share in [0, 1]"
-            )));
+        for (name, value) in [
+            ("stage1_fraction", stage1_fraction),
+            ("stage2_fraction", stage2_fraction),
+            ("replay_fraction", replay_fraction),
+            ("racing_line_fraction", racing_line_fraction),
+        ] {
+            share(name, value)?;
         }
         let reward = reward_weights_from(reward_weights.unwrap_or_default())?;
         let row = match row {
@@ -270,7 +270,7 @@ impl RustVecEnv {
                 }
             )));
         }
-        let mut observation = ObservationSpec::paper(layout);
+        let mut observation = ObservationSpec::paper(layout).with_fold(fold_mirror);
         observation.velocity_scale_mps = velocity_scale_mps;
         let race = if race {
             let path = opponent.ok_or_else(|| {
@@ -397,6 +397,38 @@ impl RustVecEnv {
             d.set_item(name, v)?;
         }
         Ok(d)
+    }
+
+    /// The reward's weights now, by term name (`progress`, `command`, `smoothness`,
+    /// `pass`, `crash`).
+    fn reward_weights<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
+        let w = self.env.reward_weights();
+        let d = PyDict::new(py);
+        for (name, v) in [
+            ("progress", w.progress),
+            ("command", w.command),
+            ("smoothness", w.smoothness),
+            ("pass", w.pass),
+            ("crash", w.crash),
+        ] {
+            d.set_item(name, v)?;
+        }
+        Ok(d)
+    }
+
+    /// Replaces the reward's weights from the next step on: the paper's, with the named
+    /// ones replaced (as the constructor's `reward_weights`; a schedule such as
+    /// host-trainer's `[pass_decay]` calls it between rollouts). A `reset(seed=...)` keeps
+    /// them. `ValueError` for an unknown term or a weight that is not finite and >= 0, and
+    /// nothing changes then.
+    fn set_reward_weights(
+        &mut self,
+        reward_weights: std::collections::HashMap<String, f32>,
+    ) -> PyResult<()> {
+        let w = reward_weights_from(reward_weights)?;
+        self.env.set_reward_weights(w);
+        self.config.reward = w;
+        Ok(())
     }
 
     /// Restarts: with a seed, the environments are rebuilt as if constructed with it (the
@@ -618,6 +650,14 @@ impl Policy {
     #[getter]
     fn velocity_scale_mps(&self) -> f32 {
         self.spec.velocity_scale_mps
+    }
+
+    /// True when it was trained on observations folded by the track's mirror (pass it to
+    /// `make_vec_env(fold_mirror=...)`); `act` takes such observations as they are, the
+    /// flight controller folds and unfolds around it.
+    #[getter]
+    fn fold_mirror(&self) -> bool {
+        self.spec.is_folded()
     }
 
     /// The Gaussian means (unclipped), float32 `[n, 4]`, for `obs` float32 `[n, obs_dim]`;

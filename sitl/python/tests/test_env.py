@@ -192,6 +192,50 @@ def test_reward_weights_replace_the_papers_by_name():
     assert [s["command"] for s in paper] == [s["command"] for s in changed]
 
 
+def test_reward_weights_set_between_steps_take_effect_and_survive_a_reset():
+    """set_reward_weights (a trainer's schedule, host-trainer's [pass_decay]) changes the
+    weights from the next step on, as the constructor's would, and a seeded reset keeps
+    them; a bad weight is refused and changes nothing."""
+    a = np.full((1, 4), -1.0, np.float32)
+
+    def fall(env):
+        env.reset(seed=0)
+        while True:
+            _, _, term, _, infos = env.step(a)
+            if term[0]:
+                return float(infos["crash"][0])
+
+    env = overtake.make_vec_env(num_envs=1, spawn="stage1")
+    assert env._env.reward_weights()["crash"] == pytest.approx(5.0)
+    assert fall(env) == pytest.approx(-DT * 5.0)
+    env._env.set_reward_weights({"crash": 1.0})
+    assert env._env.reward_weights()["crash"] == pytest.approx(1.0)
+    assert env._env.reward_weights()["progress"] == pytest.approx(0.5)
+    assert fall(env) == pytest.approx(-DT * 1.0)  # fall() resets with a seed first
+    with pytest.raises(ValueError, match="unknown term 'crsh'"):
+        env._env.set_reward_weights({"crsh": 2.0})
+    with pytest.raises(ValueError, match="crash -1"):
+        env._env.set_reward_weights({"crash": -1.0})
+    assert env._env.reward_weights()["crash"] == pytest.approx(1.0)
+
+
+def test_fold_mirror_folds_the_mirrored_half_only():
+    """With fold_mirror the envs flying to the mirrored half observe their mirror image
+    (host-trainer's env.fold_mirror): from the same spawns, some rows differ from the plain
+    env's and the others are equal, and so they stay under the same (symmetric) actions."""
+    plain = overtake.make_vec_env(num_envs=64, seed=3)
+    folded = overtake.make_vec_env(num_envs=64, seed=3, fold_mirror=True)
+    p, _ = plain.reset(seed=3)
+    f, _ = folded.reset(seed=3)
+    same = np.all(p == f, axis=1)
+    assert same.any() and not same.all()
+    hover = np.full((64, 4), 0.1, np.float32)  # equal motors: the image's action is the same
+    p, *_ = plain.step(hover)
+    f, *_ = folded.step(hover)
+    assert np.array_equal(p[same], f[same])
+    assert not np.array_equal(p, f)
+
+
 def test_reward_terms_add_up_and_match_numpy():
     """The reward is the terms' sum; the command and smoothness terms recomputed in numpy
     from the clipped actions (a swapped or mislabelled term fails here)."""

@@ -35,6 +35,32 @@ def test_row_a_flies_the_time_trial():
     assert passed >= 16 * 6, passed
 
 
+def test_a_folded_policy_flies_in_a_folded_env_only():
+    """policies/stage1.blob was trained on observations folded by the track's mirror: in
+    an env made with its fold_mirror it flies its 12 s from the stage-1 start without a crash
+    through both halves of the figure-8; fed the plain env's observations it crashes."""
+    policy = overtake.Policy(POLICIES / "stage1.blob")
+    assert policy.fold_mirror and not overtake.Policy(ROW_A).fold_mirror
+    outcome = {}
+    for fold in [True, False]:
+        env = overtake.make_vec_env(
+            num_envs=16,
+            spawn="stage1",
+            velocity_scale_mps=policy.velocity_scale_mps,
+            fold_mirror=fold,
+        )
+        obs, _ = env.reset(seed=0)
+        passed = crashed = 0
+        for _ in range(600):
+            obs, _, term, _, infos = env.step(policy.act(obs))
+            passed += infos["gate_passed"].sum()
+            crashed += term.sum()
+        outcome[fold] = (passed, crashed)
+    # Measured: 9 gates each, no crash folded; 32 crashes (two each) plain.
+    assert outcome[True][1] == 0 and outcome[True][0] >= 16 * 8, outcome
+    assert outcome[False][1] > 0, outcome
+
+
 def test_row_a_rows_are_independent():
     policy = overtake.Policy(ROW_A)
     obs = np.random.default_rng(0).uniform(-1, 1, (37, 17)).astype(np.float32)

@@ -73,3 +73,25 @@ def test_a_run_killed_after_its_last_update_finishes_on_resume(tmp_path):
     assert after["iterations"] == 1 and abs(after["wall_s"] - before["wall_s"]) < 1.0
     rows = (out / "metrics.jsonl").read_text().splitlines()
     assert len(rows) == 1
+
+
+def test_a_folded_run_with_a_pass_decay_exports_a_folded_blob(tmp_path):
+    """--fold-mirror trains on folded observations and the blob records the fold (the
+    controller folds only what the blob says), equal to PyTorch's actor on a folded rollout.
+    --pass-decay lowers the pass weight between rollouts as host-trainer's [pass_decay]."""
+    script = load_script()
+    out = tmp_path / "run"
+    argv = ["--out", str(out), "--num-envs", "16", "--steps-per-env", "8", "--iterations", "3",
+            "--eval-episodes", "1", "--parity-envs", "32", "--parity-steps", "50",
+            "--fold-mirror", "--pass-decay", "0", "1", "2", "--reward-weight", "crash=1"]  # fmt: skip
+    assert script.main(argv) == 0
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["pass_weight"] for r in rows] == [1.0, 1.0, 0.0]
+    args = script.parse_args(argv)
+    assert script.rewards_at(args, 0) == {"crash": 1.0, "pass": 1.0}
+    assert script.rewards_at(args, 5) == {"crash": 1.0, "pass": 0.0}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["parity_max_abs_err"] <= 1e-5
+    import overtake
+
+    assert overtake.Policy(out / "policy.blob").fold_mirror

@@ -48,6 +48,7 @@ def make_vec_env(
     replay_fraction: float = 0.0,
     racing_line_fraction: float = 0.0,
     reward_weights: dict[str, float] | None = None,
+    fold_mirror: bool = False,
 ) -> OvertakeVecEnv:
     """``num_envs`` auto-resetting environments of a time trial or a race.
 
@@ -84,6 +85,11 @@ def make_vec_env(
         reward_weights: the reward's weights that differ from the paper's, by term name
             (``progress`` 0.5, ``command`` 0.0005, ``smoothness`` 0.0002, ``pass`` 1,
             ``crash`` 5; e.g. ``{"crash": 1.0}``, as ``[reward]`` in host-trainer's configs).
+        fold_mirror: observe the figure-8 folded onto one half by its mirror symmetry
+            (host-trainer's ``env.fold_mirror``): a step flying to the mirrored half's gates
+            observes its mirror image, and its action is the image's, the motors renumbered
+            back by the environment. A policy trained so must be exported folded
+            (``host-trainer import-rslrl --fold-mirror``) for the controller to fly it.
 
     Raises:
         ValueError: an unknown task, preset, spawn, row, competition or reward term, a bad number, a
@@ -109,6 +115,7 @@ def make_vec_env(
         replay_fraction=replay_fraction,
         racing_line_fraction=racing_line_fraction,
         reward_weights=reward_weights,
+        fold_mirror=fold_mirror,
     )
     return OvertakeVecEnv(env, task=task)
 

@@ -67,9 +67,11 @@ class VecEnv(_RslRlVecEnv):
             "velocity_scale_mps": 3.0,
             "spawn_speed_mps": 0.0,
             "stage1_fraction": 0.0,
+            "stage2_fraction": 0.0,
             "replay_fraction": 0.0,
             "racing_line_fraction": 0.0,
             "reward_weights": None,
+            "fold_mirror": False,
         }
         unknown = set(make_vec_env_kwargs) - set(kwargs)
         if unknown:
@@ -140,6 +142,16 @@ class VecEnv(_RslRlVecEnv):
             log[f"/reward/{name}"] = stats[name] / max(stats["steps"], 1)
         extras = {"observations": {}, "time_outs": time_outs, "log": log}
         return self._obs, self._tensor(rewards), dones, extras
+
+    def set_reward_weights(self, weights: dict[str, float]) -> None:
+        """The reward's weights from the next step on: the paper's with the named ones
+        replaced (as ``reward_weights``); a schedule such as host-trainer's ``[pass_decay]``
+        calls it between rollouts. ``ValueError`` for an unknown term or a bad weight."""
+        self._env.set_reward_weights(weights)
+
+    def reward_weights(self) -> dict[str, float]:
+        """The reward's weights now, by term name."""
+        return self._env.reward_weights()
 
     def take_totals(self) -> dict[str, float]:
         """Sums since the last call (``steps``, the events ``gates_passed``, ``crashes``,
