@@ -86,6 +86,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--lr", type=float, help="initial learning rate (default: the paper's)")
     p.add_argument("--entropy", type=float, help="entropy coefficient (default: the paper's)")
     p.add_argument("--desired-kl", type=float, help="adaptive lr KL target (paper 0.01)")
+    p.add_argument("--desired-kl-decay", type=float, nargs=3, metavar=("FINAL", "FROM", "TO"),
+                   help="the KL target falls linearly from --desired-kl to FINAL between "
+                        "iterations FROM and TO (host-trainer's ppo.desired_kl_decay)")
     p.add_argument("--epochs", type=int, help="epochs per update (paper 5)")
     p.add_argument("--minibatches", type=int, help="minibatches per epoch (paper 4)")
     p.add_argument("--eval-every", type=int, default=0, help="referee every K iterations (0: end only)")
@@ -287,6 +290,16 @@ def max_std_at(args: argparse.Namespace, iteration: int) -> float | None:
     return linear_fall(args.max_std, final, first, last, iteration)
 
 
+def desired_kl_at(args: argparse.Namespace, target: float, iteration: int) -> float:
+    """The KL target of the update after ``iteration`` iterations (host-trainer's
+    ``PpoConfig::desired_kl_at``): ``target``, lowered by ``--desired-kl-decay``."""
+    if args.desired_kl_decay is None:
+        return target
+    final, first, last = args.desired_kl_decay
+    t = linear_fall(0.0, 1.0, first, last, iteration)
+    return target if t == 0.0 else target + (final - target) * t
+
+
 def export_blob(policy: torch.nn.Module, args: argparse.Namespace, name: str) -> Path:
     """The actor as ``OUT/NAME.safetensors`` and ``OUT/NAME.blob``."""
     st = args.out / f"{name}.safetensors"
@@ -341,6 +354,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.max_std_decay is not None and args.max_std is None:
         sys.exit("error: --max-std-decay lowers --max-std, which is not given")
+    if args.desired_kl_decay is not None and args.desired_kl is None:
+        sys.exit("error: --desired-kl-decay lowers --desired-kl, which is not given")
     # The cargo steps run in the repository: paths given relative to here must not move.
     args.out = args.out.resolve()
     args.opponent = args.opponent.resolve()
@@ -424,12 +439,17 @@ def main(argv: list[str] | None = None) -> int:
             "model": policy.state_dict(),
             "optimizer": runner.alg.optimizer.state_dict(),
             "learning_rate": runner.alg.learning_rate,
+            "desired_kl": runner.alg.desired_kl,
             "torch_rng": torch.get_rng_state(),
             "arguments": run_arguments(args),
         })  # fmt: skip
 
+    kl_target = runner.alg.desired_kl
+
     def update_and_log() -> tuple:
         t0 = time.perf_counter()
+        if args.desired_kl_decay is not None:
+            runner.alg.desired_kl = desired_kl_at(args, kl_target, clock["iteration"])
         losses = update()
         ceiling = max_std_at(args, clock["iteration"])
         if ceiling is not None:

@@ -21,6 +21,14 @@ use crate::format::{BlobError, WeightDtype};
 /// Actions of a quadrotor policy: one per motor.
 pub const ACTION_DIM: usize = 4;
 
+/// Inputs evaluated side by side by the `*_lanes` forward passes (the host's batched
+/// inference: one AVX-512 register of f32, four SSE ones). Each lane computes exactly the
+/// operations of the one-input pass in the same order, so its output is the same bits.
+pub const LANES: usize = 16;
+
+/// `N` values of each of [`LANES`] inputs, value-major: `v[k][lane]`.
+pub type Lanes<const N: usize> = [[f32; LANES]; N];
+
 /// Bytes of one int8 matrix row of `cols` values in a payload: rows are padded with zero
 /// bytes to a multiple of 4, so every row starts on a word.
 pub const fn i8_row_bytes(cols: usize) -> usize {
@@ -313,6 +321,56 @@ fn dot(w: &[f32], x: &[f32]) -> f32 {
     ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7])) + tail
 }
 
+/// [`dot`] of `w` with each lane of `x` (`x[k][lane]`, `x.len() == w.len()`): the same
+/// eight accumulators, tail and reduction order per lane, so each lane is bit for bit `dot`
+/// of its own vector. Written as whole-lane operations ([`axpy_lanes`], [`add_lanes`]) so
+/// that each is one vector instruction of the lanes (written as nested iterators, the
+/// compiler vectorised across the accumulators instead, with gathers, at half the speed of
+/// one input at a time).
+#[inline(always)]
+fn dot_lanes(w: &[f32], x: &[[f32; LANES]]) -> [f32; LANES] {
+    let mut acc = [[0.0f32; LANES]; 8];
+    let wc = w.chunks_exact(8);
+    let xc = x.chunks_exact(8);
+    let (wr, xr) = (wc.remainder(), xc.remainder());
+    for (wk, xk) in wc.zip(xc) {
+        for ((a, wi), xi) in acc.iter_mut().zip(wk).zip(xk) {
+            axpy_lanes(a, *wi, xi);
+        }
+    }
+    let mut tail = [0.0f32; LANES];
+    for (wi, xi) in wr.iter().zip(xr) {
+        axpy_lanes(&mut tail, *wi, xi);
+    }
+    let [a0, a1, a2, a3, a4, a5, a6, a7] = acc;
+    let s04 = add_lanes(&a0, &a4);
+    let s15 = add_lanes(&a1, &a5);
+    let s26 = add_lanes(&a2, &a6);
+    let s37 = add_lanes(&a3, &a7);
+    let lo = add_lanes(&s04, &s15);
+    let hi = add_lanes(&s26, &s37);
+    add_lanes(&add_lanes(&lo, &hi), &tail)
+}
+
+/// `acc[l] += w · x[l]` in every lane (a product, then a sum: no fused multiply-add, as
+/// [`dot`]).
+#[inline(always)]
+fn axpy_lanes(acc: &mut [f32; LANES], w: f32, x: &[f32; LANES]) {
+    for (a, xl) in acc.iter_mut().zip(x) {
+        *a += w * xl;
+    }
+}
+
+/// `a[l] + b[l]` in every lane.
+#[inline(always)]
+fn add_lanes(a: &[f32; LANES], b: &[f32; LANES]) -> [f32; LANES] {
+    let mut out = *a;
+    for (o, bl) in out.iter_mut().zip(b) {
+        *o += bl;
+    }
+    out
+}
+
 /// Logistic sigmoid through libm's `expf`.
 #[inline]
 pub fn sigmoid(x: f32) -> f32 {
@@ -331,6 +389,33 @@ pub fn tanh(x: f32) -> f32 {
 fn tanh_in_place(v: &mut [f32]) {
     for x in v {
         *x = tanh(*x);
+    }
+}
+
+#[inline(always)]
+fn tanh_lanes(v: &mut [[f32; LANES]]) {
+    for x in v.iter_mut().flatten() {
+        *x = tanh(*x);
+    }
+}
+
+/// Lane `l` of `x` as one vector.
+#[inline(always)]
+fn lane<const N: usize>(x: &Lanes<N>, l: usize) -> [f32; N] {
+    let mut out = [0.0f32; N];
+    for (o, xk) in out.iter_mut().zip(x) {
+        *o = xk.get(l).copied().unwrap_or(0.0);
+    }
+    out
+}
+
+/// Sets lane `l` of `y` to `v`.
+#[inline(always)]
+fn set_lane<const N: usize>(y: &mut Lanes<N>, l: usize, v: &[f32; N]) {
+    for (yk, vk) in y.iter_mut().zip(v) {
+        if let Some(slot) = yk.get_mut(l) {
+            *slot = *vk;
+        }
     }
 }
 
@@ -359,6 +444,30 @@ impl<'w, const IN: usize, const OUT: usize> Linear<'w, IN, OUT> {
         self.weight.mul_add(x, y);
         for (yo, b) in y.iter_mut().zip(self.bias) {
             *yo += b;
+        }
+    }
+
+    /// [`Self::forward`] of [`LANES`] inputs side by side, each lane the same bits.
+    #[inline(always)]
+    pub fn forward_lanes(&self, x: &Lanes<IN>, y: &mut Lanes<OUT>) {
+        match self.weight {
+            Matrix::F32(w) => {
+                for ((yo, row), b) in y.iter_mut().zip(w.chunks_exact(IN.max(1))).zip(self.bias) {
+                    let d = dot_lanes(row, x);
+                    for (yl, dl) in yo.iter_mut().zip(d) {
+                        // `forward`'s order: 0 + W x, then + b.
+                        *yl = (0.0 + dl) + b;
+                    }
+                }
+            }
+            // int8 quantises each input with its own scale: lane by lane.
+            Matrix::I8 { .. } => {
+                for l in 0..LANES {
+                    let mut out = [0.0f32; OUT];
+                    self.forward(&lane(x, l), &mut out);
+                    set_lane(y, l, &out);
+                }
+            }
         }
     }
 }
@@ -525,6 +634,16 @@ pub trait Head<'w, const IN: usize>: Sized {
     fn load(r: &mut WeightReader<'w>) -> Result<Self, BlobError>;
     /// The output (the Gaussian mean, not yet clipped).
     fn forward(&self, x: &[f32; IN]) -> [f32; ACTION_DIM];
+    /// [`Self::forward`] of [`LANES`] inputs side by side, each lane the same bits (the
+    /// host's batched inference; unused on the flight controller).
+    #[inline(always)]
+    fn forward_lanes(&self, x: &Lanes<IN>) -> Lanes<ACTION_DIM> {
+        let mut y = [[0.0f32; LANES]; ACTION_DIM];
+        for l in 0..LANES {
+            set_lane(&mut y, l, &self.forward(&lane(x, l)));
+        }
+        y
+    }
 }
 
 /// MLP head with two tanh hidden layers (Table 1 rows A, B: 2 × 128).
@@ -558,6 +677,19 @@ impl<'w, const IN: usize, const H1: usize, const H2: usize> Head<'w, IN> for Mlp
         tanh_in_place(&mut a2);
         let mut y = [0.0f32; ACTION_DIM];
         self.out.forward(&a2, &mut y);
+        y
+    }
+
+    #[inline(always)]
+    fn forward_lanes(&self, x: &Lanes<IN>) -> Lanes<ACTION_DIM> {
+        let mut a1 = [[0.0f32; LANES]; H1];
+        self.l1.forward_lanes(x, &mut a1);
+        tanh_lanes(&mut a1);
+        let mut a2 = [[0.0f32; LANES]; H2];
+        self.l2.forward_lanes(&a1, &mut a2);
+        tanh_lanes(&mut a2);
+        let mut y = [[0.0f32; LANES]; ACTION_DIM];
+        self.out.forward_lanes(&a2, &mut y);
         y
     }
 }
@@ -661,6 +793,25 @@ impl<'w, const IN: usize, const H1: usize, const H2: usize, const H3: usize, con
         self.out.forward(&a4, &mut y);
         y
     }
+
+    #[inline(always)]
+    fn forward_lanes(&self, x: &Lanes<IN>) -> Lanes<ACTION_DIM> {
+        let mut a1 = [[0.0f32; LANES]; H1];
+        self.l1.forward_lanes(x, &mut a1);
+        tanh_lanes(&mut a1);
+        let mut a2 = [[0.0f32; LANES]; H2];
+        self.l2.forward_lanes(&a1, &mut a2);
+        tanh_lanes(&mut a2);
+        let mut a3 = [[0.0f32; LANES]; H3];
+        self.l3.forward_lanes(&a2, &mut a3);
+        tanh_lanes(&mut a3);
+        let mut a4 = [[0.0f32; LANES]; H4];
+        self.l4.forward_lanes(&a3, &mut a4);
+        tanh_lanes(&mut a4);
+        let mut y = [[0.0f32; LANES]; ACTION_DIM];
+        self.out.forward_lanes(&a4, &mut y);
+        y
+    }
 }
 
 /// A feed-forward policy: an MLP head on the observation.
@@ -684,6 +835,15 @@ impl<M> MlpPolicy<M> {
         M: Head<'w, IN>,
     {
         self.head.forward(obs)
+    }
+
+    /// [`Self::forward`] of [`LANES`] observations side by side, each lane the same bits.
+    #[inline(always)]
+    pub fn forward_lanes<'w, const IN: usize>(&self, obs: &Lanes<IN>) -> Lanes<ACTION_DIM>
+    where
+        M: Head<'w, IN>,
+    {
+        self.head.forward_lanes(obs)
     }
 }
 

@@ -14,7 +14,7 @@
 
 use crate::format::{BlobError, WeightDtype};
 use crate::nn::{
-    ACTION_DIM, LstmPolicy, LstmStackState, Mlp2, Mlp3, Mlp4, MlpPolicy, WeightReader,
+    ACTION_DIM, LANES, Lanes, LstmPolicy, LstmStackState, Mlp2, Mlp3, Mlp4, MlpPolicy, WeightReader,
 };
 use crate::observation::{Observation, ObservationLayout};
 use serde::{Deserialize, Serialize};
@@ -387,6 +387,42 @@ impl<'w> Policy<'w> {
     /// True when the policy carries a recurrent state.
     pub fn is_recurrent(&self) -> bool {
         matches!(self, Self::E(_) | Self::F(_) | Self::G(_))
+    }
+
+    /// [`Self::act`] of a feed-forward policy (rows A-D) on [`LANES`] observations side by
+    /// side (the host's batched rollouts): `obs` holds `LANES` observations of
+    /// [`Self::obs_dim`] values one after the other, and lane `l` of the result is bit for
+    /// bit `act` of observation `l` (a NaN may be another NaN: which operand's NaN an
+    /// operation keeps is the instruction's choice). `None` for a recurrent policy or
+    /// another length.
+    #[inline(always)]
+    pub fn act_lanes(&self, obs: &[f32]) -> Option<[[f32; ACTION_DIM]; LANES]> {
+        #[inline(always)]
+        fn lanes<const N: usize>(obs: &[f32]) -> Option<Lanes<N>> {
+            if obs.len() != N * LANES {
+                return None;
+            }
+            let mut x = [[0.0f32; LANES]; N];
+            for (l, o) in obs.chunks_exact(N).enumerate() {
+                for (xk, v) in x.iter_mut().zip(o) {
+                    *xk.get_mut(l)? = *v;
+                }
+            }
+            Some(x)
+        }
+        let y = match self {
+            Self::A(p) => p.forward_lanes(&lanes::<17>(obs)?),
+            Self::B(p) => p.forward_lanes(&lanes::<20>(obs)?),
+            Self::C(p) => p.forward_lanes(&lanes::<30>(obs)?),
+            Self::E(_) | Self::F(_) | Self::G(_) => return None,
+        };
+        let mut means = [[0.0f32; ACTION_DIM]; LANES];
+        for (k, yk) in y.iter().enumerate() {
+            for (m, v) in means.iter_mut().zip(yk) {
+                *m.get_mut(k)? = *v;
+            }
+        }
+        Some(means)
     }
 
     /// One forward step: the Gaussian mean (unclipped) for `obs`, advancing `state`.

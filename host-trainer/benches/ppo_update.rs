@@ -6,14 +6,18 @@
 //! - `ppo_update/minibatch_102400_{burn,fused}`: one minibatch step at RSL-RL's minibatch
 //!   size (4,096 envs × 100 steps / 4) with `burn`'s autodiff and Adam, and with the fused
 //!   update ([`host_trainer::fused`]), both with the passes on two threads, in the same run;
-//! - `train_iteration/stage1`: one PPO iteration of `configs/stage1_finetune.toml` end to end
-//!   (rollout of 512 envs × 50 steps with the deployed network, then 5 epochs × 2
-//!   minibatches of 12,800), checkpoint load and save included.
+//! - `rollout_inference/512_envs_{one_by_one,lanes}`: the deployed network's means for one
+//!   step of 512 envs on one thread, `Policy::act` env by env and `act_lanes` 16 envs side by
+//!   side (the rollout's path since the lanes; the same bits), in the same run;
+//! - `train_iteration/stage1`: one PPO iteration of `configs/stage1.toml` (the shipped
+//!   config) end to end (rollout of 512 envs × 100 steps with the deployed network, folded,
+//!   then 5 epochs × 4 minibatches of 12,800), checkpoint load and save included.
 //!
 //! `cargo bench -p host-trainer --bench ppo_update`
 
 use burn::tensor::Device;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
+use firmware_core::nn::LANES;
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::config::TrainConfig;
 use host_trainer::fused::FusedLearner;
@@ -21,13 +25,13 @@ use host_trainer::model::{Actor, Critic};
 use host_trainer::nets::{PolicyNet, ValueNet};
 use host_trainer::ppo::Learner;
 use host_trainer::rng::init_rng;
-use host_trainer::rollout::Rollout;
+use host_trainer::rollout::{Rollout, act_lanes};
 use host_trainer::train::{RunOptions, run};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use sitl::env::{EnvConfig, OBS_DIM, VecEnv};
 
-const STAGE1: &str = include_str!("../configs/stage1_finetune.toml");
+const STAGE1: &str = include_str!("../configs/stage1.toml");
 
 fn learner() -> Learner {
     let device = Device::flex().autodiff();
@@ -88,6 +92,45 @@ fn update(c: &mut Criterion) {
     g.finish();
 }
 
+fn inference(c: &mut Criterion) {
+    use firmware_core::nn::ACTION_DIM;
+    use firmware_core::observation::Observation;
+    use firmware_core::policy::Policy;
+    let l = learner();
+    let payload = l.actor.payload();
+    let policy = Policy::from_payload(&Architecture::table1(TableRow::A), &payload).unwrap();
+    let envs = 512;
+    let env = VecEnv::time_trial(EnvConfig::paper_along_track(envs, 0));
+    let obs = env.observations().to_vec();
+    let mut means = vec![0.0f32; envs * ACTION_DIM];
+    let mut g = c.benchmark_group("rollout_inference");
+    g.throughput(Throughput::Elements(envs as u64));
+    g.bench_function("512_envs_one_by_one", |b| {
+        b.iter(|| {
+            for (m, o) in means
+                .chunks_exact_mut(ACTION_DIM)
+                .zip(obs.chunks_exact(OBS_DIM))
+            {
+                let mut state = policy.initial_state();
+                let o = Observation::from_values(o).unwrap();
+                m.copy_from_slice(&policy.act(&o, &mut state).unwrap());
+            }
+        })
+    });
+    g.bench_function("512_envs_lanes", |b| {
+        b.iter(|| {
+            for (m, o) in means
+                .chunks_exact_mut(ACTION_DIM * LANES)
+                .zip(obs.chunks_exact(OBS_DIM * LANES))
+            {
+                let lanes = act_lanes(&policy, o).unwrap();
+                m.copy_from_slice(lanes.as_flattened());
+            }
+        })
+    });
+    g.finish();
+}
+
 fn iteration(c: &mut Criterion) {
     let mut config = TrainConfig::parse(STAGE1).unwrap();
     let dir = std::env::temp_dir().join(format!("overtake-bench-{}", std::process::id()));
@@ -119,5 +162,5 @@ fn iteration(c: &mut Criterion) {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-criterion_group!(benches, update, iteration);
+criterion_group!(benches, update, inference, iteration);
 criterion_main!(benches);

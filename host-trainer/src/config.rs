@@ -315,6 +315,20 @@ pub struct StdDecay {
     pub to_iteration: u32,
 }
 
+/// A falling KL target ([`PpoConfig::desired_kl_decay`]): `desired_kl` until
+/// `from_iteration`, then linearly to `final_kl` at `to_iteration`. Iterations are absolute,
+/// like [`StdDecay`]'s.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct KlDecay {
+    /// The KL target from `to_iteration` on.
+    pub final_kl: f64,
+    /// The last iteration at `desired_kl`.
+    pub from_iteration: u32,
+    /// The first iteration at `final_kl`.
+    pub to_iteration: u32,
+}
+
 /// A falling pass-reward weight ([`TrainConfig::pass_decay`], not in the paper): `reward.pass`
 /// until `from_iteration`, then linearly to `final_weight` at `to_iteration`. The pass reward
 /// `1 − ‖rel_gate‖` pays for crossing a gate near its centre, which helps a network find the
@@ -356,6 +370,12 @@ pub struct PpoConfig {
     pub learning_rate: f64,
     /// KL target of the adaptive learning rate (`None`: fixed rate). Paper: 0.01.
     pub desired_kl: Option<f64>,
+    /// The KL target lowered during the run: from `desired_kl` it falls linearly to
+    /// `final_kl` between two iterations, so the adaptive learning rate takes smaller steps
+    /// at the end (the annealed learning rate of PPO's paper, through RSL-RL's KL-adaptive
+    /// rate). Needs `desired_kl`. Paper: none. Default none (left out of the canonical TOML).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub desired_kl_decay: Option<KlDecay>,
     /// Gradient norm clip. Paper: 1.0.
     pub max_grad_norm: f32,
     /// Floor of the adaptive learning rate. Paper (RSL-RL): 1e-5. Default 1e-5. (Left out of
@@ -548,8 +568,30 @@ impl PpoConfig {
     }
 }
 
+impl PpoConfig {
+    /// The KL target of the update after `iteration` iterations: `desired_kl`, lowered by
+    /// `desired_kl_decay` when there is one (exactly `desired_kl` before the decay starts).
+    pub fn desired_kl_at(&self, iteration: u32) -> Option<f64> {
+        let target = self.desired_kl?;
+        let Some(d) = &self.desired_kl_decay else {
+            return Some(target);
+        };
+        let t = f64::from(linear_fall(
+            0.0,
+            1.0,
+            d.from_iteration,
+            d.to_iteration,
+            iteration,
+        ));
+        if t == 0.0 {
+            return Some(target);
+        }
+        Some(target + (d.final_kl - target) * t)
+    }
+}
+
 /// `start` until iteration `from`, then linearly to `end` at iteration `to` and after (the
-/// σ ceiling's and the pass weight's schedules).
+/// σ ceiling's, the KL target's and the pass weight's schedules).
 fn linear_fall(start: f32, end: f32, from: u32, to: u32, iteration: u32) -> f32 {
     let span = to.saturating_sub(from).max(1) as f32;
     let t = (iteration.saturating_sub(from) as f32 / span).min(1.0);

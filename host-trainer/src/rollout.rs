@@ -10,7 +10,7 @@
 
 use crate::error::TrainError;
 use crate::rng::normal;
-use firmware_core::nn::ACTION_DIM;
+use firmware_core::nn::{ACTION_DIM, LANES};
 use firmware_core::observation::Observation;
 use firmware_core::policy::{Policy, PolicyState};
 use rand_chacha::ChaCha8Rng;
@@ -177,24 +177,45 @@ pub fn collect_rollout(
             *z = normal(noise_rng);
         }
         actions
-            .par_chunks_mut(ACTION_DIM * 64)
-            .zip(obs.par_chunks(obs_dim * 64))
-            .zip(noise.par_chunks(ACTION_DIM * 64))
-            .zip(rollout.memory.par_chunks_mut(64))
+            .par_chunks_mut(ACTION_DIM * ENVS_PER_TASK)
+            .zip(obs.par_chunks(obs_dim * ENVS_PER_TASK))
+            .zip(noise.par_chunks(ACTION_DIM * ENVS_PER_TASK))
+            .zip(rollout.memory.par_chunks_mut(ENVS_PER_TASK))
             .for_each(|(((a, o), z), memory)| {
+                // A feed-forward policy runs LANES envs side by side (the same bits as one
+                // by one), the rest of the chunk and a recurrent policy one by one.
+                let mut done = 0;
+                if !policy.is_recurrent() {
+                    for ((a, o), z) in a
+                        .chunks_exact_mut(ACTION_DIM * LANES)
+                        .zip(o.chunks_exact(obs_dim * LANES))
+                        .zip(z.chunks_exact(ACTION_DIM * LANES))
+                    {
+                        let Some(means) = act_lanes(policy, o) else {
+                            break;
+                        };
+                        for ((a, mean), z) in a
+                            .chunks_exact_mut(ACTION_DIM)
+                            .zip(means)
+                            .zip(z.chunks_exact(ACTION_DIM))
+                        {
+                            explore(a, &mean, std, z);
+                        }
+                        done += LANES;
+                    }
+                }
                 for (((a, o), z), memory) in a
                     .chunks_exact_mut(ACTION_DIM)
                     .zip(o.chunks_exact(obs_dim))
                     .zip(z.chunks_exact(ACTION_DIM))
                     .zip(memory)
+                    .skip(done)
                 {
                     let mean = Observation::from_values(o).and_then(|o| policy.act(&o, memory));
                     let Some(mean) = mean else {
                         continue;
                     };
-                    for k in 0..ACTION_DIM {
-                        a[k] = mean[k] + std.get(k).copied().unwrap_or(0.0) * z[k];
-                    }
+                    explore(a, &mean, std, z);
                 }
             });
         rollout.actions.extend_from_slice(&actions);
@@ -221,6 +242,50 @@ pub fn collect_rollout(
     }
     rollout.last_obs.extend_from_slice(env.observations());
     Ok(())
+}
+
+/// The action flown: the mean plus σ times the drawn noise, per motor.
+#[inline(always)]
+fn explore(action: &mut [f32], mean: &[f32; ACTION_DIM], std: &[f32], noise: &[f32]) {
+    for k in 0..ACTION_DIM {
+        action[k] = mean[k] + std.get(k).copied().unwrap_or(0.0) * noise[k];
+    }
+}
+
+/// Envs per parallel task of the rollout's inference (a multiple of [`LANES`]).
+const ENVS_PER_TASK: usize = 64;
+
+/// [`Policy::act_lanes`] compiled for the widest vector unit the CPU has (AVX-512, AVX2,
+/// else the SSE2 baseline): the same operations in every lane, in the same order, so the
+/// same numbers whichever runs (`act_lanes` equals `act` bit for bit, NaNs aside). One by
+/// one, the rollout's inference was three quarters of its time.
+pub fn act_lanes(policy: &Policy<'_>, obs: &[f32]) -> Option<[[f32; ACTION_DIM]; LANES]> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::arch::is_x86_feature_detected!("avx512f") {
+            // SAFETY: the CPU has AVX-512F (checked just above).
+            return unsafe { act_lanes_avx512(policy, obs) };
+        }
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2 (checked just above).
+            return unsafe { act_lanes_avx2(policy, obs) };
+        }
+    }
+    policy.act_lanes(obs)
+}
+
+/// [`Policy::act_lanes`] compiled for AVX-512.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f")]
+fn act_lanes_avx512(policy: &Policy<'_>, obs: &[f32]) -> Option<[[f32; ACTION_DIM]; LANES]> {
+    policy.act_lanes(obs)
+}
+
+/// [`Policy::act_lanes`] compiled for AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn act_lanes_avx2(policy: &Policy<'_>, obs: &[f32]) -> Option<[[f32; ACTION_DIM]; LANES]> {
+    policy.act_lanes(obs)
 }
 
 /// The mirror teacher's targets of one step into `out` (`envs × 4`, resized): for every env

@@ -274,6 +274,7 @@ fn iteration<A: PolicyNet, C: ValueNet>(
     let started = Instant::now();
     let params = &PpoConfig {
         max_std: config.ppo.max_std_at(state.iteration),
+        desired_kl: config.ppo.desired_kl_at(state.iteration),
         ..config.ppo.clone()
     };
     state.learner.train_actor = config

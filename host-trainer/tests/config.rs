@@ -176,6 +176,59 @@ fn the_sigma_ceiling_falls_linearly_between_its_iterations() {
     }
 }
 
+/// `ppo.desired_kl_decay`: the KL target falls linearly between its iterations, exactly
+/// `desired_kl` before; absent, it leaves the canonical TOML (older configs keep their hash);
+/// it needs a target to lower and may not raise it.
+#[test]
+fn the_kl_target_falls_linearly_between_its_iterations() {
+    let decay = "desired_kl_decay = { final_kl = 0.001, from_iteration = 100, to_iteration = 400 }\ninit_std";
+    let c = TrainConfig::parse(&FINETUNE.replacen("init_std", decay, 1)).unwrap();
+    let plain = TrainConfig::parse(FINETUNE).unwrap();
+    let target = plain.ppo.desired_kl.unwrap();
+    assert_eq!(c.ppo.desired_kl_at(0), Some(target));
+    assert_eq!(c.ppo.desired_kl_at(100), Some(target));
+    for (i, want) in [
+        (250, target + (0.001 - target) * 0.5),
+        (400, 0.001),
+        (10_000, 0.001),
+    ] {
+        let at = c.ppo.desired_kl_at(i).unwrap();
+        assert!((at - want).abs() < 1e-9, "iteration {i}: {at}");
+    }
+    assert_eq!(plain.ppo.desired_kl_at(10_000), Some(target));
+    assert_ne!(c.hash(), plain.hash());
+    assert!(
+        !toml::to_string(&plain)
+            .unwrap()
+            .contains("desired_kl_decay")
+    );
+    assert_eq!(
+        TrainConfig::parse(&toml::to_string(&c).unwrap()).unwrap(),
+        c
+    );
+    for bad in [
+        // A target that rises, one that falls to 0, one that falls backwards in time.
+        "desired_kl_decay = { final_kl = 1.0, from_iteration = 1, to_iteration = 4 }\ninit_std",
+        "desired_kl_decay = { final_kl = 0.0, from_iteration = 1, to_iteration = 4 }\ninit_std",
+        "desired_kl_decay = { final_kl = 0.001, from_iteration = 4, to_iteration = 4 }\ninit_std",
+    ] {
+        assert!(
+            matches!(
+                TrainConfig::parse(&FINETUNE.replacen("init_std", bad, 1)),
+                Err(ConfigError::Invalid(_))
+            ),
+            "{bad}"
+        );
+    }
+    // No target to lower: a fixed learning rate.
+    let mut fixed = c.clone();
+    fixed.ppo.desired_kl = None;
+    assert!(matches!(
+        TrainConfig::parse(&toml::to_string(&fixed).unwrap()),
+        Err(ConfigError::Invalid(_))
+    ));
+}
+
 /// `pass_decay`: the pass weight falls linearly between its iterations, the other weights
 /// stay; absent, it leaves the canonical TOML (older configs keep their hash).
 #[test]

@@ -25,6 +25,7 @@ fn params() -> PpoConfig {
         entropy_coef: 0.0,
         learning_rate: 1e-3,
         desired_kl: None,
+        desired_kl_decay: None,
         max_grad_norm: 1.0,
         min_learning_rate: 1e-5,
         max_learning_rate: 1e-2,
@@ -527,4 +528,61 @@ fn the_mirror_teacher_targets_are_the_policy_on_the_images() {
         students > 100 && others > 100,
         "{students} students, {others} others"
     );
+}
+
+/// The rollout runs a feed-forward policy 16 envs side by side (`Policy::act_lanes`, built
+/// for the CPU's vector unit) and the rest of each 64-env task one by one: every recorded
+/// action is still exactly the deployed network's `act` on the recorded observation plus
+/// σ times the serially drawn noise. 83 envs: one full task of four lane groups, then 19
+/// envs (one lane group and three one by one).
+#[test]
+fn rollout_actions_are_the_deployed_networks_act_plus_noise() {
+    use firmware_core::observation::Observation;
+    use firmware_core::policy::Policy;
+    use host_trainer::rng::normal;
+    use host_trainer::rollout::{Rollout, collect_rollout};
+    use sitl::env::{EnvConfig, VecEnv};
+    let device = Device::flex().autodiff();
+    let arch = Architecture::table1(TableRow::A);
+    let mut rng = init_rng(11);
+    let actor = Actor::fresh(&arch, 0.3, &mut rng, &device);
+    let payload = actor.payload();
+    let policy = Policy::from_payload(&arch, &payload).unwrap();
+    let std = actor.std();
+    let (envs, steps) = (83, 12);
+    let mut env = VecEnv::time_trial(EnvConfig::paper_along_track(envs, 3));
+    let mut rollout = Rollout::new(envs, 17);
+    let mut noise = ChaCha8Rng::seed_from_u64(4);
+    let mut replay = noise.clone();
+    collect_rollout(
+        &mut env,
+        &policy,
+        &std,
+        steps,
+        &mut noise,
+        &mut rollout,
+        |_, _| {},
+    )
+    .unwrap();
+    assert_eq!(rollout.actions.len(), envs * steps * 4);
+    for (i, (o, a)) in rollout
+        .obs
+        .chunks_exact(17)
+        .zip(rollout.actions.chunks_exact(4))
+        .enumerate()
+    {
+        let z: [f32; 4] = core::array::from_fn(|_| normal(&mut replay));
+        let mut state = policy.initial_state();
+        let mean = policy
+            .act(&Observation::from_values(o).unwrap(), &mut state)
+            .unwrap();
+        let want: [f32; 4] = core::array::from_fn(|k| mean[k] + std[k] * z[k]);
+        assert_eq!(
+            a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+            want.map(f32::to_bits),
+            "sample {i} (env {}, step {})",
+            i % envs,
+            i / envs
+        );
+    }
 }

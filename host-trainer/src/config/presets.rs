@@ -150,6 +150,7 @@ impl Default for PpoConfig {
             entropy_coef: 0.01,
             learning_rate: 1e-4,
             desired_kl: Some(0.01),
+            desired_kl_decay: None,
             max_grad_norm: 1.0,
             min_learning_rate: default_min_learning_rate(),
             max_learning_rate: default_max_learning_rate(),

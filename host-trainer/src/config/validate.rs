@@ -191,6 +191,16 @@ fn ppo(c: &TrainConfig) -> Result<(), ConfigError> {
             return bad("ppo.max_std must be finite, positive and at least init_std");
         }
     }
+    if let Some(d) = &p.desired_kl_decay {
+        let Some(target) = p.desired_kl else {
+            return bad("ppo.desired_kl_decay lowers ppo.desired_kl, which is not set");
+        };
+        if !(d.final_kl > 0.0 && d.final_kl <= target && d.from_iteration < d.to_iteration) {
+            return bad(
+                "ppo.desired_kl_decay: final_kl must be in (0, desired_kl] and from_iteration < to_iteration",
+            );
+        }
+    }
     if let Some(d) = &p.max_std_decay {
         let Some(max) = p.max_std else {
             return bad("ppo.max_std_decay lowers ppo.max_std, which is not set");
