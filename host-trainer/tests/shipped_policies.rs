@@ -315,3 +315,29 @@ fn the_stage2_student_is_its_configs_warm_start_and_races_as_recorded() {
         "stage2_G_student",
     );
 }
+
+/// `docs/runs/rslrl_stage1/policy.blob`, RSL-RL's actor on the shipped recipe (issue
+/// "learn", items 1 and 5; not a shipped policy): imported folded, as it was trained, and it
+/// flies the referee's time trial exactly as its `eval.json` records, the numbers
+/// docs/TRAINING.md compares with ours.
+#[test]
+fn the_rsl_rl_reference_flies_as_recorded() {
+    let dir = root().join("docs/runs/rslrl_stage1");
+    let raw = std::fs::read(dir.join("policy.blob")).unwrap();
+    assert!(folded(&raw));
+    let recorded: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("eval.json")).unwrap()).unwrap();
+    assert_eq!(recorded["spawn"].as_str(), Some("stage1"));
+    let eval = EvalConfig {
+        preset: Preset::paper(),
+        episodes: recorded["episodes"].as_u64().unwrap() as u32,
+        seconds: recorded["episode_seconds"].as_f64().unwrap() as f32,
+        seed: recorded["seed"].as_u64().unwrap(),
+        spawn: Some(SpawnMode::Stage1),
+    };
+    let r = report(&PilotSpec::from_blob("rsl-rl", &raw).unwrap(), None, &eval);
+    assert_eq!(r.gates_passed, recorded["gates_passed"].as_u64().unwrap());
+    assert_eq!(r.crashes, recorded["crashes"].as_u64().unwrap());
+    let lap = r.best_lap_s.expect("a complete lap");
+    assert!((lap - recorded["best_lap_s"].as_f64().unwrap()).abs() < 1e-4);
+}
