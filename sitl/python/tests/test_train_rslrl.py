@@ -95,3 +95,26 @@ def test_a_folded_run_with_a_pass_decay_exports_a_folded_blob(tmp_path):
     import overtake
 
     assert overtake.Policy(out / "policy.blob").fold_mirror
+
+
+def test_the_schedules_are_host_trainers():
+    """The σ ceiling, the pass weight and the KL target fall as host-trainer's schedules do
+    (host-trainer/tests/config.rs holds the same numbers): constant until FROM, linear to
+    FINAL at TO, constant after; exactly the start value before the fall."""
+    script = load_script()
+    args = script.parse_args([
+        "--out", "unused", "--max-std", "1.0", "--max-std-decay", "0.4", "100", "400",
+        "--pass-decay", "0.25", "100", "400", "--desired-kl", "0.01",
+        "--desired-kl-decay", "0.001", "100", "400", "--reward-weight", "crash=1",
+    ])  # fmt: skip
+    for it, std, pass_w, kl in [
+        (0, 1.0, 1.0, 0.01),
+        (100, 1.0, 1.0, 0.01),
+        (250, 0.7, 0.625, 0.0055),
+        (400, 0.4, 0.25, 0.001),
+        (10_000, 0.4, 0.25, 0.001),
+    ]:
+        assert script.max_std_at(args, it) == pytest.approx(std)
+        assert script.rewards_at(args, it) == pytest.approx({"crash": 1.0, "pass": pass_w})
+        assert script.desired_kl_at(args, 0.01, it) == pytest.approx(kl)
+    assert script.desired_kl_at(args, 0.01, 100) == 0.01
