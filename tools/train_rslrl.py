@@ -279,6 +279,32 @@ def rewards_at(args: argparse.Namespace, iteration: int) -> dict[str, float]:
     return weights
 
 
+def check_arguments(args: argparse.Namespace) -> None:
+    """Refuses, before anything runs, what host-trainer's config validation refuses: a
+    schedule without the value it lowers, one that rises, falls to a bad value or backwards
+    in time, or iterations that are not whole; and a fold on a race row (the race's
+    environment does not fold, so the blob would claim a fold it was not trained with)."""
+    if args.fold_mirror and args.row != "A":
+        sys.exit(f"error: --fold-mirror folds the time trial (row A), not row {args.row}'s race")
+    pass_weight = reward_overrides(args).get("pass", 1.0)
+    for flag, decay, start, floor_ok in [
+        ("--max-std-decay", args.max_std_decay, args.max_std, False),
+        ("--pass-decay", args.pass_decay, pass_weight, True),
+        ("--desired-kl-decay", args.desired_kl_decay, args.desired_kl, False),
+    ]:
+        if decay is None:
+            continue
+        if start is None:
+            sys.exit(f"error: {flag} lowers a value that is not given")
+        final, first, last = decay
+        low_ok = final >= 0.0 if floor_ok else final > 0.0
+        if not (low_ok and final <= start and first < last):
+            sys.exit(f"error: {flag} {final:g} {first:g} {last:g}: FINAL must be in "
+                     f"{'[0' if floor_ok else '(0'}, {start:g}] and FROM < TO")  # fmt: skip
+        if not (first == int(first) >= 0 and last == int(last)):
+            sys.exit(f"error: {flag}: FROM and TO are iterations (whole numbers >= 0)")
+
+
 def max_std_at(args: argparse.Namespace, iteration: int) -> float | None:
     """The σ ceiling of the update after ``iteration`` iterations (host-trainer's
     ``PpoConfig::max_std_at``)."""
@@ -352,10 +378,7 @@ def parity(policy: torch.nn.Module, blob: Path, args: argparse.Namespace) -> flo
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    if args.max_std_decay is not None and args.max_std is None:
-        sys.exit("error: --max-std-decay lowers --max-std, which is not given")
-    if args.desired_kl_decay is not None and args.desired_kl is None:
-        sys.exit("error: --desired-kl-decay lowers --desired-kl, which is not given")
+    check_arguments(args)
     # The cargo steps run in the repository: paths given relative to here must not move.
     args.out = args.out.resolve()
     args.opponent = args.opponent.resolve()

@@ -118,3 +118,22 @@ def test_the_schedules_are_host_trainers():
         assert script.rewards_at(args, it) == pytest.approx({"crash": 1.0, "pass": pass_w})
         assert script.desired_kl_at(args, 0.01, it) == pytest.approx(kl)
     assert script.desired_kl_at(args, 0.01, 100) == 0.01
+
+
+@pytest.mark.parametrize(
+    "extra, text",
+    [
+        (["--row", "G", "--fold-mirror"], "not row G"),
+        (["--max-std-decay", "0.1", "1", "4"], "lowers a value that is not given"),
+        (["--max-std", "1.0", "--max-std-decay", "1.5", "1", "4"], "FINAL must be in"),
+        (["--pass-decay", "-1", "1", "4"], "FINAL must be in"),
+        (["--pass-decay", "0", "4", "4"], "FROM < TO"),
+        (["--desired-kl", "0.01", "--desired-kl-decay", "0", "1", "4"], "FINAL must be in"),
+        (["--desired-kl", "0.01", "--desired-kl-decay", "0.001", "1.5", "4"], "whole numbers"),
+    ],
+)
+def test_bad_schedules_are_refused_before_anything_runs(tmp_path, extra, text):
+    script = load_script()
+    with pytest.raises(SystemExit, match=text):
+        script.main(["--out", str(tmp_path / "run"), *extra])
+    assert not (tmp_path / "run").exists()
