@@ -90,26 +90,9 @@ fn the_stage1_policy_is_the_shipped_config_from_scratch_and_flies_as_recorded() 
     );
     assert!(folded(&raw));
 
-    let recorded: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(root().join("policies/stage1/eval.json")).unwrap(),
-    )
-    .unwrap();
-    assert_eq!(recorded["spawn"].as_str(), Some("stage1"));
-    assert_eq!(recorded["preset"].as_str(), Some("paper"));
-    let eval = EvalConfig {
-        preset: Preset::paper(),
-        episodes: recorded["episodes"].as_u64().unwrap() as u32,
-        seconds: recorded["episode_seconds"].as_f64().unwrap() as f32,
-        seed: recorded["seed"].as_u64().unwrap(),
-        spawn: Some(SpawnMode::Stage1),
-    };
+    let (eval, r) = flies_as_recorded("stage1", &raw, &root().join("policies/stage1/eval.json"));
     assert!(eval.episodes >= 20 && eval.seconds == 45.0);
-    let r = report(&PilotSpec::from_blob("stage1", &raw).unwrap(), None, &eval);
-    println!("{}", r.table());
-    assert_eq!(r.gates_passed, recorded["gates_passed"].as_u64().unwrap());
-    assert_eq!(r.crashes, recorded["crashes"].as_u64().unwrap());
     let lap = r.best_lap_s.expect("a complete lap");
-    assert!((lap - recorded["best_lap_s"].as_f64().unwrap()).abs() < 1e-4);
     assert!(r.success_rate >= 0.95, "success {}", r.success_rate);
     assert!(r.crash_rate <= 0.05, "crashes {} /s", r.crash_rate);
     assert!(lap <= 7.8, "best lap {lap} s");
@@ -325,9 +308,17 @@ fn the_rsl_rl_reference_flies_as_recorded() {
     let dir = root().join("docs/runs/rslrl_stage1");
     let raw = std::fs::read(dir.join("policy.blob")).unwrap();
     assert!(folded(&raw));
+    flies_as_recorded("rsl-rl", &raw, &dir.join("eval.json"));
+}
+
+/// The blob `raw` flies the referee's time trial (paper preset, stage-1 spawn) exactly as
+/// the report at `eval_json` records: the same gates, crashes and best lap. Returns the
+/// evaluation replayed and its report.
+fn flies_as_recorded(name: &str, raw: &[u8], eval_json: &Path) -> (EvalConfig, sitl::eval::Report) {
     let recorded: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("eval.json")).unwrap()).unwrap();
+        serde_json::from_str(&std::fs::read_to_string(eval_json).unwrap()).unwrap();
     assert_eq!(recorded["spawn"].as_str(), Some("stage1"));
+    assert_eq!(recorded["preset"].as_str(), Some("paper"));
     let eval = EvalConfig {
         preset: Preset::paper(),
         episodes: recorded["episodes"].as_u64().unwrap() as u32,
@@ -335,9 +326,11 @@ fn the_rsl_rl_reference_flies_as_recorded() {
         seed: recorded["seed"].as_u64().unwrap(),
         spawn: Some(SpawnMode::Stage1),
     };
-    let r = report(&PilotSpec::from_blob("rsl-rl", &raw).unwrap(), None, &eval);
+    let r = report(&PilotSpec::from_blob(name, raw).unwrap(), None, &eval);
+    println!("{name}: {}", r.table());
     assert_eq!(r.gates_passed, recorded["gates_passed"].as_u64().unwrap());
     assert_eq!(r.crashes, recorded["crashes"].as_u64().unwrap());
     let lap = r.best_lap_s.expect("a complete lap");
     assert!((lap - recorded["best_lap_s"].as_f64().unwrap()).abs() < 1e-4);
+    (eval, r)
 }
