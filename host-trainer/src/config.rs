@@ -198,6 +198,29 @@ pub struct RunConfig {
     /// lower crash rate, then the earlier iteration) instead of the last one. Default off.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub keep_best: bool,
+    /// With `keep_best` in a time trial: rank the candidates on this validation instead of
+    /// the referee's stage-1 episode, which is the evaluation the result is judged on.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub select: Option<Selection>,
+}
+
+/// The validation `run.keep_best` ranks a time trial's candidates by (`run.select`): the
+/// deterministic policy flown `episodes` × 45 s from `spawn` (seed `seed`) at every
+/// evaluation from `from_iteration` on. The order: the higher success rate, then the fewer
+/// crashes per second, then the shorter mean lap, then the earlier iteration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Selection {
+    /// Spawn of the validation episodes: "along-track" (a random point of the centreline,
+    /// at rest) or "stage2" (at rest 2 m or 1 m before a random gate); not the stage-1
+    /// spawn, the referee's.
+    pub spawn: String,
+    /// Episodes of 45 s per validation.
+    pub episodes: u32,
+    /// Seed of the validation's spawns (pick one the final evaluations do not use).
+    pub seed: u64,
+    /// The first iteration whose evaluation is a candidate (earlier ones are not validated).
+    pub from_iteration: u32,
 }
 
 fn default_eval_races() -> u32 {

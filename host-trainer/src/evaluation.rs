@@ -2,7 +2,7 @@
 //! `run.eval_every` iterations (and of every warm-start round with
 //! `warm_start.keep_best_round`), and the order in which `run.keep_best` ranks evaluations.
 
-use crate::config::TrainConfig;
+use crate::config::{RunConfig, Selection, TrainConfig};
 use crate::metrics::IterationMetrics;
 use sitl::dynamics::Preset;
 use sitl::eval::{EvalConfig, Report, report};
@@ -40,26 +40,83 @@ pub fn referee_eval(blob: &[u8], preset: Preset, config: &TrainConfig) -> Option
 /// Whether the referee scored evaluation `a` better than `b` (`run.keep_best`): the higher
 /// success rate, then the lower crash rate; an exact tie keeps the earlier (`b`).
 pub fn referee_prefers(a: &IterationMetrics, b: &IterationMetrics) -> bool {
-    let key = |m: &IterationMetrics| {
-        (
-            m.eval_success_rate.unwrap_or(f64::NEG_INFINITY),
-            -m.eval_crash_rate.unwrap_or(f64::INFINITY),
-        )
-    };
-    let (ka, kb) = (key(a), key(b));
-    ka.0 > kb.0 || (ka.0 == kb.0 && ka.1 > kb.1)
+    let key = |m: &IterationMetrics| score(m.eval_success_rate, m.eval_crash_rate, None);
+    key(a) > key(b)
 }
 
-/// The best-scored evaluation of `history` (`run.keep_best`): the one [`referee_prefers`]
-/// to every other, the earliest of equals.
-pub fn best_evaluation(history: &[IterationMetrics]) -> Option<&IterationMetrics> {
-    history
-        .iter()
-        .filter(|m| m.eval_success_rate.is_some())
-        .fold(None, |best, m| match best {
-            Some(b) if !referee_prefers(m, b) => Some(b),
-            _ => Some(m),
-        })
+/// The validation of `run.select`: the deterministic policy flown `episodes` × 45 s alone
+/// from the selection's spawns (seed `seed`).
+pub fn selection_eval(blob: &[u8], preset: Preset, select: &Selection) -> Option<Report> {
+    let spec = PilotSpec::from_blob("training", blob).ok()?;
+    let eval = EvalConfig {
+        preset,
+        episodes: select.episodes,
+        seconds: 45.0,
+        seed: select.seed,
+        spawn: Some(SpawnMode::by_name(&select.spawn)?),
+    };
+    Some(report(&spec, None, &eval))
+}
+
+/// The key `run.keep_best` ranks by, greater is better: success, then fewer crashes, then a
+/// shorter lap (absent: a DNF, the worst).
+fn score(success: Option<f64>, crashes: Option<f64>, lap_s: Option<f64>) -> (f64, f64, f64) {
+    (
+        success.unwrap_or(f64::NEG_INFINITY),
+        -crashes.unwrap_or(f64::INFINITY),
+        -lap_s.unwrap_or(f64::INFINITY),
+    )
+}
+
+/// `run.keep_best`'s key of evaluation `m`, `None` where it is no candidate: without
+/// `run.select`, the in-training referee's success and crashes; with it, the validation's
+/// success, crashes and mean lap, from `run.select.from_iteration` on.
+fn candidate_score(m: &IterationMetrics, run: &RunConfig) -> Option<(f64, f64, f64)> {
+    match &run.select {
+        None => m
+            .eval_success_rate
+            .map(|_| score(m.eval_success_rate, m.eval_crash_rate, None)),
+        Some(s) if m.iteration >= s.from_iteration => m.select_success_rate.map(|_| {
+            score(
+                m.select_success_rate,
+                m.select_crash_rate,
+                m.select_mean_lap_s,
+            )
+        }),
+        Some(_) => None,
+    }
+}
+
+/// Whether `m` becomes `run.keep_best`'s best over the current `best` (`None`: no candidate
+/// yet); an exact tie keeps the earlier.
+pub fn keep_best_prefers(
+    m: &IterationMetrics,
+    best: Option<&IterationMetrics>,
+    run: &RunConfig,
+) -> bool {
+    match (
+        candidate_score(m, run),
+        best.and_then(|b| candidate_score(b, run)),
+    ) {
+        (Some(a), Some(b)) => a > b,
+        (Some(_), None) => true,
+        (None, _) => false,
+    }
+}
+
+/// The best-scored candidate of `history` under `run.keep_best` (as [`keep_best_prefers`]
+/// ranks them), the earliest of equals.
+pub fn best_evaluation<'a>(
+    history: &'a [IterationMetrics],
+    run: &RunConfig,
+) -> Option<&'a IterationMetrics> {
+    history.iter().fold(None, |best, m| {
+        if keep_best_prefers(m, best, run) {
+            Some(m)
+        } else {
+            best
+        }
+    })
 }
 
 #[cfg(test)]
@@ -85,9 +142,69 @@ mod tests {
             eval(20, 0.85, 0.10),
             eval(25, 0.70, 0.00),
         ];
-        assert_eq!(best_evaluation(&history).map(|m| m.iteration), Some(15));
+        let run = RunConfig::default();
+        assert_eq!(
+            best_evaluation(&history, &run).map(|m| m.iteration),
+            Some(15)
+        );
         assert!(referee_prefers(&history[2], &history[0]));
         assert!(!referee_prefers(&history[4], &history[3]));
-        assert!(best_evaluation(&history[1..2]).is_none());
+        assert!(best_evaluation(&history[1..2], &run).is_none());
+    }
+
+    #[test]
+    fn with_a_selection_the_validation_ranks_from_its_first_iteration_on() {
+        let eval = |iteration, stage1: f64, validation: Option<(f64, f64, Option<f64>)>| {
+            IterationMetrics {
+                iteration,
+                eval_success_rate: Some(stage1),
+                eval_crash_rate: Some(0.0),
+                select_success_rate: validation.map(|v| v.0),
+                select_crash_rate: validation.map(|v| v.1),
+                select_mean_lap_s: validation.and_then(|v| v.2),
+                ..IterationMetrics::default()
+            }
+        };
+        let run = RunConfig {
+            keep_best: true,
+            select: Some(Selection {
+                spawn: "along-track".into(),
+                episodes: 10,
+                seed: 7,
+                from_iteration: 20,
+            }),
+            ..RunConfig::default()
+        };
+        let history = [
+            // Before from_iteration: not a candidate, even validated and perfect.
+            eval(10, 1.0, Some((1.0, 0.0, Some(7.0)))),
+            // The stage-1 referee is not what ranks.
+            eval(20, 1.0, Some((0.95, 0.01, Some(7.9)))),
+            eval(30, 0.5, Some((0.97, 0.02, Some(8.0)))),
+            eval(40, 0.9, Some((0.97, 0.01, Some(8.1)))),
+            // Same success and crashes: the shorter mean lap wins; a DNF loses to any lap.
+            eval(50, 0.9, Some((0.97, 0.01, Some(7.95)))),
+            eval(60, 0.9, Some((0.97, 0.01, None))),
+            // An exact tie keeps the earlier.
+            eval(70, 1.0, Some((0.97, 0.01, Some(7.95)))),
+            eval(80, 1.0, None),
+        ];
+        assert_eq!(
+            best_evaluation(&history, &run).map(|m| m.iteration),
+            Some(50)
+        );
+        assert_eq!(
+            best_evaluation(&history[..2], &run).map(|m| m.iteration),
+            Some(20)
+        );
+        assert!(best_evaluation(&history[..1], &run).is_none());
+        let without = RunConfig {
+            select: None,
+            ..run
+        };
+        assert_eq!(
+            best_evaluation(&history, &without).map(|m| m.iteration),
+            Some(10)
+        );
     }
 }

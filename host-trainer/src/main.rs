@@ -230,10 +230,24 @@ fn train(config: &Path, options: RunOptions) -> Result<(), String> {
     );
     let m = match &s.best {
         Some(b) => {
-            println!(
-                "exported the actor of iteration {} (run.keep_best: the referee's best)",
-                b.iteration
-            );
+            match (&cfg.run.select, b.select_success_rate) {
+                (Some(sel), Some(sr)) => println!(
+                    "exported the actor of iteration {} (run.keep_best: the best of iterations {}-{} on {} {} spawns, seed {}: success {sr:.3}, crashes {:.3} /s, mean lap {})",
+                    b.iteration,
+                    sel.from_iteration,
+                    s.iterations,
+                    sel.episodes,
+                    sel.spawn,
+                    sel.seed,
+                    b.select_crash_rate.unwrap_or(0.0),
+                    b.select_mean_lap_s
+                        .map_or("DNF".to_string(), |l| format!("{l:.2} s"))
+                ),
+                _ => println!(
+                    "exported the actor of iteration {} (run.keep_best: the referee's best)",
+                    b.iteration
+                ),
+            }
             b
         }
         None => m,

@@ -73,6 +73,16 @@ pub struct IterationMetrics {
     /// Referee, races only: overtakes whose lead was held 2 s.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub eval_sustained_overtakes: Option<u64>,
+    /// With `run.select`, from its first iteration: the validation's success rate (the
+    /// deterministic policy, `run.select.episodes` × 45 s from its spawns).
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub select_success_rate: Option<f64>,
+    /// The validation's crashes per second.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub select_crash_rate: Option<f64>,
+    /// The validation's mean lap (s), `None` without a complete lap.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub select_mean_lap_s: Option<f64>,
     /// With `[guard]`: the share of the update kept (1, 0.5, 0.25, or 0 when rejected).
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub guard_step: Option<f64>,

@@ -6,7 +6,7 @@
 
 use crate::config::{EnvSection, PpoConfig, TrainConfig};
 use crate::error::TrainError;
-use crate::evaluation::{best_evaluation, referee_eval, referee_prefers};
+use crate::evaluation::{best_evaluation, keep_best_prefers, referee_eval, selection_eval};
 use crate::export::{actor_blob, actor_from_blob, actor_safetensors};
 use crate::guard::guard_update;
 use crate::imitation::Imitate;
@@ -393,9 +393,16 @@ fn evaluate<A: PolicyNet, C: ValueNet>(
             m.eval_sustained_overtakes = Some(r.sustained_overtakes);
         }
     }
+    if let Some(select) = &config.run.select
+        && state.iteration >= select.from_iteration
+        && let Some(r) = selection_eval(&blob, config.preset()?, select)
+    {
+        m.select_success_rate = Some(r.success_rate);
+        m.select_crash_rate = Some(r.crash_rate);
+        m.select_mean_lap_s = r.mean_lap_s;
+    }
     if config.run.keep_best
-        && m.eval_success_rate.is_some()
-        && best_evaluation(&state.history).is_none_or(|b| referee_prefers(m, b))
+        && keep_best_prefers(m, best_evaluation(&state.history, &config.run), &config.run)
     {
         dir.create()?;
         let p = dir.best_candidate(state.iteration, "blob");
@@ -407,8 +414,17 @@ fn evaluate<A: PolicyNet, C: ValueNet>(
     let lap = m
         .eval_best_lap_s
         .map_or("DNF".to_string(), |l| format!("{l:.2} s"));
+    let validation = match m.select_success_rate {
+        Some(sr) => format!(
+            "  validation: success {sr:.3}, crashes {:.3}/s, mean lap {}",
+            m.select_crash_rate.unwrap_or(0.0),
+            m.select_mean_lap_s
+                .map_or("DNF".to_string(), |l| format!("{l:.2} s"))
+        ),
+        None => String::new(),
+    };
     console.say(format!(
-        "it {:>5}  {:>6.0} s  {:>7.0} samples/s  reward/step {:+.4}  rollout success {:.3}  referee: success {:.3}, crashes {:.3}/s, best lap {lap}",
+        "it {:>5}  {:>6.0} s  {:>7.0} samples/s  reward/step {:+.4}  rollout success {:.3}  referee: success {:.3}, crashes {:.3}/s, best lap {lap}{validation}",
         m.iteration,
         m.wall_s,
         m.samples_per_s,
@@ -431,7 +447,7 @@ fn finish<A: PolicyNet, C: ValueNet>(
 ) -> Result<RunSummary, TrainError> {
     dir.write_curves(&config.run.name, &state.history)?;
     let best = if config.run.keep_best {
-        best_evaluation(&state.history).cloned()
+        best_evaluation(&state.history, &config.run).cloned()
     } else {
         None
     };

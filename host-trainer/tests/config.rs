@@ -132,6 +132,41 @@ fn typos_and_bad_values_are_errors() {
 }
 
 #[test]
+fn a_selection_is_checked_and_hashed() {
+    let select =
+        "select = { spawn = \"along-track\", episodes = 100, seed = 7, from_iteration = 2000 }";
+    assert!(STAGE1.contains(select));
+    let stage1 = TrainConfig::parse(STAGE1).unwrap();
+    let other_seed = TrainConfig::parse(&STAGE1.replace("seed = 7", "seed = 8")).unwrap();
+    assert_ne!(stage1.hash(), other_seed.hash());
+    for (from, to, field) in [
+        ("keep_best = true", "keep_best = false", "keep_best"),
+        (
+            "\"along-track\", episodes",
+            "\"stage1\", episodes",
+            "stage1",
+        ),
+        ("episodes = 100", "episodes = 0", "episodes"),
+        (
+            "from_iteration = 2000 }",
+            "from_iteration = 2501 }",
+            "from_iteration",
+        ),
+        ("seed = 7,", "seed = 7, lap = 1,", "lap"),
+    ] {
+        let e = TrainConfig::parse(&STAGE1.replace(from, to))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(field), "{to}: {e}");
+    }
+    // A race (keep_best on) ranks its races; a selection there is refused.
+    let race =
+        include_str!("../configs/stage2_B.toml").replace("[env]", &format!("{select}\n\n[env]"));
+    let e = TrainConfig::parse(&race).unwrap_err().to_string();
+    assert!(e.contains("time trials"), "{e}");
+}
+
+#[test]
 fn the_presets_in_code_are_the_toml_presets() {
     assert_eq!(TrainConfig::parse(PAPER).unwrap(), TrainConfig::paper());
     assert_eq!(TrainConfig::parse(STAGE1).unwrap(), TrainConfig::ours());

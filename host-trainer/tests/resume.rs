@@ -1,10 +1,11 @@
 //! Checkpoints and resume: a run stopped and resumed, even after a kill left a torn
 //! checkpoint and metrics past it, ends where an uninterrupted run's learning state is at the
 //! checkpoint; a directory holding a run is not overwritten; a changed config is refused,
-//! except a changed budget; a fork (`--fork-from`) continues a run under a changed config.
+//! except a changed budget; a fork (`--fork-from`) continues a run under a changed config; `run.select` picks the
+//! exported actor across a resume.
 
 use burn::tensor::Device;
-use host_trainer::config::TrainConfig;
+use host_trainer::config::{Selection, TrainConfig};
 use host_trainer::fused::FusedOptim;
 use host_trainer::metrics::IterationMetrics;
 use host_trainer::nets::PolicyNet;
@@ -230,4 +231,113 @@ fn a_fork_continues_a_run_under_a_changed_config_and_records_its_parent() {
     for d in [parent, same, resumed, other] {
         let _ = std::fs::remove_dir_all(d);
     }
+}
+
+/// `run.select`: from its first iteration every evaluation also flies the validation, and the
+/// exported blob is the candidate with the best validation (success, then crashes, then mean
+/// lap), not the referee's stage-1 favourite, also across a resume; the validation's numbers
+/// are the blob's own (re-flown here).
+#[test]
+fn a_selection_exports_the_validations_best_across_a_resume() {
+    // The shipped pipeline at a tiny budget, fine-tuning the shipped policy with large fixed
+    // steps: the candidates fly, and differ from one iteration to the next.
+    let mut config = TrainConfig::parse(include_str!("../configs/stage1.toml")).unwrap();
+    config.run.iterations = 8;
+    config.run.checkpoint_every = 2;
+    config.run.eval_every = 1;
+    let select = Selection {
+        spawn: "along-track".into(),
+        episodes: 6,
+        seed: 7,
+        from_iteration: 3,
+    };
+    config.run.select = Some(select.clone());
+    config.env.num_envs = 64;
+    config.ppo.steps_per_env = 24;
+    config.ppo.learning_rate = 3e-3;
+    config.ppo.desired_kl = None;
+    config.ppo.init_std = 0.1;
+    TrainConfig::parse(&toml::to_string(&config).unwrap()).unwrap();
+    let out = tmp("select");
+    let first = RunOptions {
+        init_actor: Some(format!("{}/../policies/stage1.blob", env!("CARGO_MANIFEST_DIR")).into()),
+        ..options(&out, false, Some(4))
+    };
+    assert!(run(&config, &first).unwrap().blob.is_none());
+    let summary = run(&config, &options(&out, true, None)).unwrap();
+
+    let metrics = metrics(&out);
+    assert_eq!(metrics.len(), 8);
+    for m in &metrics {
+        assert!(m.eval_success_rate.is_some());
+        assert_eq!(
+            m.select_success_rate.is_some(),
+            m.iteration >= 3,
+            "{}",
+            m.iteration
+        );
+    }
+    let argmax = |key: &dyn Fn(&IterationMetrics) -> (f64, f64, f64)| {
+        let mut best = &metrics[2];
+        for m in &metrics[3..] {
+            if key(m) > key(best) {
+                best = m;
+            }
+        }
+        best.iteration
+    };
+    let validation_key = |m: &IterationMetrics| {
+        (
+            m.select_success_rate.unwrap(),
+            -m.select_crash_rate.unwrap(),
+            -m.select_mean_lap_s.unwrap_or(f64::INFINITY),
+        )
+    };
+    let referee_key = |m: &IterationMetrics| {
+        (
+            m.eval_success_rate.unwrap(),
+            -m.eval_crash_rate.unwrap(),
+            -m.eval_best_lap_s.unwrap_or(f64::INFINITY),
+        )
+    };
+    let chosen = argmax(&validation_key);
+    // The case this test is for: the two verdicts disagree.
+    assert_ne!(
+        chosen,
+        argmax(&referee_key),
+        "the validation and the referee agree here: pick another validation seed"
+    );
+    let best = &metrics[chosen as usize - 1];
+    assert_eq!(summary.best.as_ref().map(|m| m.iteration), Some(chosen));
+    let exported = std::fs::read(summary.blob.unwrap()).unwrap();
+    let candidate = out
+        .join("checkpoints")
+        .join(format!("best_iter_{chosen:06}.blob"));
+    assert!(exported == std::fs::read(candidate).unwrap());
+    let bytes = firmware_core::blob::AlignedBytes::new(&exported);
+    let blob = firmware_core::blob::Blob::parse(bytes.as_bytes()).unwrap();
+    assert_eq!(blob.header().provenance.iterations, chosen);
+    let validation = sitl::eval::report(
+        &sitl::pilot::PilotSpec::from_blob("exported", &exported).unwrap(),
+        None,
+        &sitl::eval::EvalConfig {
+            preset: config.preset().unwrap(),
+            episodes: select.episodes,
+            seconds: 45.0,
+            seed: select.seed,
+            spawn: Some(sitl::referee::SpawnMode::AlongTrack),
+        },
+    );
+    // The same episodes; the means may be summed in another order (parallel episodes).
+    let close = |a: Option<f64>, b: Option<f64>| match (a, b) {
+        (Some(a), Some(b)) => (a - b).abs() <= 1e-12 * a.abs().max(1.0),
+        (a, b) => a == b,
+    };
+    assert!(close(
+        Some(validation.success_rate),
+        best.select_success_rate
+    ));
+    assert!(close(Some(validation.crash_rate), best.select_crash_rate));
+    assert!(close(validation.mean_lap_s, best.select_mean_lap_s));
+    let _ = std::fs::remove_dir_all(out);
 }

@@ -242,7 +242,7 @@ fn check_race(name: &str, config_name: &str) {
         Some(config.run.iterations),
         "{name}: the run finished"
     );
-    let best = host_trainer::evaluation::best_evaluation(&metrics).unwrap();
+    let best = host_trainer::evaluation::best_evaluation(&metrics, &config.run).unwrap();
     assert_eq!(
         iterations, best.iteration,
         "{name}: not the best evaluation"

@@ -3,9 +3,9 @@
 //! [`TrainConfig::ours`] (`host-trainer/tests/config.rs` holds each equal to its TOML file).
 
 use super::{
-    EnvSection, PassDecay, PpoConfig, RunConfig, StdDecay, TrainConfig, UpdateKind, WarmStart,
-    default_eval_every, default_eval_races, default_max_learning_rate, default_min_learning_rate,
-    default_velocity_scale, one,
+    EnvSection, PassDecay, PpoConfig, RunConfig, Selection, StdDecay, TrainConfig, UpdateKind,
+    WarmStart, default_eval_every, default_eval_races, default_max_learning_rate,
+    default_min_learning_rate, default_velocity_scale, one,
 };
 use sitl::env::RewardWeights;
 
@@ -45,7 +45,8 @@ impl TrainConfig {
     /// symmetry, the own velocity observed at 12 m/s full scale, lr 3e-4, σ₀ 0.3 under a
     /// ceiling falling from 1 to 0.1 over iterations 800-2000, a hover-biased output, crash
     /// weight 1 and the pass weight falling from 1 to 0 over iterations 1700-2000; 2,500
-    /// iterations (128 M samples).
+    /// iterations (128 M samples), exporting the actor of iterations 2,000-2,500 that flies
+    /// best from 100 validation spawns along the track.
     pub fn ours() -> Self {
         Self {
             run: RunConfig {
@@ -53,6 +54,13 @@ impl TrainConfig {
                 iterations: 2500,
                 checkpoint_every: 10,
                 eval_every: 20,
+                keep_best: true,
+                select: Some(Selection {
+                    spawn: "along-track".into(),
+                    episodes: 100,
+                    seed: 7,
+                    from_iteration: 2000,
+                }),
                 ..RunConfig::default()
             },
             env: EnvSection {
@@ -109,6 +117,7 @@ impl Default for RunConfig {
             eval_races: default_eval_races(),
             eval_seed: 0,
             keep_best: false,
+            select: None,
         }
     }
 }

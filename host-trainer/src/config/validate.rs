@@ -49,6 +49,28 @@ fn run(c: &TrainConfig) -> Result<(), ConfigError> {
     if c.run.eval_races == 0 {
         return bad("run.eval_races must be positive");
     }
+    if let Some(s) = &c.run.select {
+        if !c.run.keep_best {
+            return bad("run.select ranks the candidates of run.keep_best; set keep_best = true");
+        }
+        if c.race.is_some() {
+            return bad("run.select is for time trials; a race ranks its run.eval_races races");
+        }
+        if !matches!(s.spawn.as_str(), "along-track" | "stage2") {
+            return bad(format!(
+                "run.select.spawn '{}' (along-track, stage2; the stage-1 spawn is the referee's)",
+                s.spawn
+            ));
+        }
+        if s.episodes == 0 {
+            return bad("run.select.episodes must be positive");
+        }
+        if s.from_iteration > c.run.iterations {
+            return bad(
+                "run.select.from_iteration is past run.iterations: nothing would be a candidate",
+            );
+        }
+    }
     Ok(())
 }
 
