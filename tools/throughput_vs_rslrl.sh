@@ -2,7 +2,8 @@
 # Issue "learn", item 3: end-to-end training throughput of host-trainer and of RSL-RL 2.2.4 on
 # the shipped config (host-trainer/configs/stage1.toml), back to back on this machine, twice
 # (ours, RSL-RL, ours, RSL-RL): ITERATIONS iterations each (default 50 = 2.56 M samples), the
-# referee only after the last (outside the timed part on both sides). Needs the RSL-RL Python
+# referee only after the last (outside the timed part on both sides; no selection, which
+# only starts at iteration 2,000). Needs the RSL-RL Python
 # environment of README "Train from Python". Nothing else should run meanwhile.
 #
 #   bash tools/throughput_vs_rslrl.sh [OUT_DIR] [ITERATIONS]
@@ -15,6 +16,7 @@ config="$out/stage1_$iterations.toml"
 sed -e "s/^iterations = .*/iterations = $iterations/" \
     -e "s/^eval_every = .*/eval_every = $iterations/" \
     -e "s/^checkpoint_every = .*/checkpoint_every = $iterations/" \
+    -e "/^keep_best = /d" -e "/^select = /d" \
     host-trainer/configs/stage1.toml > "$config"
 cargo build --release -q -p host-trainer -p sitl
 trainer=${CARGO_TARGET_DIR:-target}/release/host-trainer
