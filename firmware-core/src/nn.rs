@@ -392,11 +392,67 @@ fn tanh_in_place(v: &mut [f32]) {
     }
 }
 
+/// [`tanh`] of every value, [`LANES`] at a time through [`expf_lanes`]: the same bits.
 #[inline(always)]
 fn tanh_lanes(v: &mut [[f32; LANES]]) {
-    for x in v.iter_mut().flatten() {
-        *x = tanh(*x);
+    for x in v.iter_mut() {
+        let mut twice = [0.0f32; LANES];
+        for (t, xl) in twice.iter_mut().zip(x.iter()) {
+            *t = 2.0 * xl;
+        }
+        let e = expf_lanes(&twice);
+        for (xl, el) in x.iter_mut().zip(e) {
+            *xl = 1.0 - 2.0 / (1.0 + el);
+        }
     }
+}
+
+/// `libm::expf` of [`LANES`] values at once, bit for bit: the arithmetic of FreeBSD's
+/// `e_expf.c` as the `libm` crate (0.2) does it, each branch computed for every lane and
+/// selected, so the compiler vectorises it; `scalbnf(y, k)` is its final multiply by 2^k
+/// (k stays within [−126, 126] here). Lanes libm treats as special (|x| ≥ 87.34, where it
+/// overflows or underflows, and NaN) are recomputed by `libm::expf` itself.
+#[inline(always)]
+fn expf_lanes(x: &[f32; LANES]) -> [f32; LANES] {
+    let ln2_hi = f32::from_bits(0x3f31_7200);
+    let ln2_lo = f32::from_bits(0x35bf_be8e);
+    let inv_ln2 = f32::from_bits(0x3fb8_aa3b);
+    let p1 = f32::from_bits(0x3e2a_aa8f);
+    let p2 = f32::from_bits(0xbb35_5215);
+    let mut y = [0.0f32; LANES];
+    let mut special = false;
+    for (yl, &xl) in y.iter_mut().zip(x) {
+        let hx = xl.to_bits() & 0x7fff_ffff;
+        let negative = xl.to_bits() >> 31 != 0;
+        special |= hx >= 0x42ae_ac50;
+        // Argument reduction: x = k ln2 + r, |r| <= ln2 / 2.
+        let reduce = hx > 0x3eb1_7218;
+        let k: i32 = if hx > 0x3f85_1592 {
+            (inv_ln2 * xl + if negative { -0.5 } else { 0.5 }) as i32
+        } else if reduce {
+            if negative { -1 } else { 1 }
+        } else {
+            0
+        };
+        let kf = k as f32;
+        let hi = if reduce { xl - kf * ln2_hi } else { xl };
+        let lo = if reduce { kf * ln2_lo } else { 0.0 };
+        let r = if reduce { hi - lo } else { xl };
+        let rr = r * r;
+        let c = r - rr * (p1 + rr * p2);
+        let v = 1.0 + (r * c / (2.0 - c) - lo + hi);
+        let scale = f32::from_bits(((0x7f + k.clamp(-126, 127)) as u32) << 23);
+        let v = if k == 0 { v } else { v * scale };
+        *yl = if hx > 0x3900_0000 { v } else { 1.0 + xl };
+    }
+    if special {
+        for (yl, &xl) in y.iter_mut().zip(x) {
+            if xl.to_bits() & 0x7fff_ffff >= 0x42ae_ac50 {
+                *yl = libm::expf(xl);
+            }
+        }
+    }
+    y
 }
 
 /// Lane `l` of `x` as one vector.
@@ -897,6 +953,50 @@ mod tests {
         assert!(worst < 2e-7, "{worst}");
         assert_eq!((tanh(100.0), tanh(-100.0)), (1.0, -1.0));
         assert!(tanh(f32::NAN).is_nan());
+    }
+
+    /// `expf_lanes` is libm's `expf` bit for bit: every 251st bit pattern (all signs,
+    /// exponents, NaNs, infinities, subnormals) and every pattern within 4,096 of a branch
+    /// threshold of libm's, both signs; and `tanh_lanes` is `tanh`.
+    #[test]
+    fn expf_lanes_is_libms_expf_bit_for_bit() {
+        let thresholds = [
+            0x42ae_ac50u32,
+            0x42b1_7218,
+            0x42cf_f1b5,
+            0x3f85_1592,
+            0x3eb1_7218,
+            0x3900_0000,
+            0x7f80_0000,
+            0,
+        ];
+        let near = thresholds.iter().flat_map(|&t| {
+            (0..8192u32).flat_map(move |d| {
+                let b = t.wrapping_add(d).wrapping_sub(4096);
+                [b, b | 0x8000_0000]
+            })
+        });
+        let bits: Vec<u32> = (0..=u32::MAX).step_by(251).chain(near).collect();
+        for chunk in bits.chunks(LANES) {
+            let mut x = [0.0f32; LANES];
+            for (xl, &b) in x.iter_mut().zip(chunk) {
+                *xl = f32::from_bits(b);
+            }
+            let y = expf_lanes(&x);
+            let mut t = [x];
+            tanh_lanes(&mut t);
+            for l in 0..chunk.len() {
+                let (want, got) = (libm::expf(x[l]), y[l]);
+                assert!(
+                    want.to_bits() == got.to_bits() || (want.is_nan() && got.is_nan()),
+                    "expf({:e} = {:#010x}): libm {want:e}, lanes {got:e}",
+                    x[l],
+                    x[l].to_bits()
+                );
+                let (want, got) = (tanh(x[l]), t[0][l]);
+                assert!(want.to_bits() == got.to_bits() || (want.is_nan() && got.is_nan()));
+            }
+        }
     }
 
     #[test]
