@@ -17,11 +17,11 @@
 
 use firmware_core::math::{Quat, Vec3};
 use firmware_core::vehicle::MotorCommand;
-use mavlink::Message;
 use mavlink::dialects::common::{
     ATTITUDE_QUATERNION_DATA, COMMAND_ACK_DATA, COMMAND_LONG_DATA, HIL_ACTUATOR_CONTROLS_DATA,
     HilActuatorControlsFlags, LOCAL_POSITION_NED_DATA, MavCmd, MavMessage, MavModeFlag, MavResult,
 };
+use mavlink::{MavlinkVersion, Message};
 use proptest::prelude::*;
 use proptest::test_runner::TestCaseError;
 use sitl::bridge::fc::{FcConfig, FlightController};
@@ -1148,10 +1148,18 @@ impl SimulatorCase {
                 let r = self.deliver(&d, frames)?;
                 // Only a frame that is exactly the awaited one (a forgery) may be taken as
                 // the answer: never one for another step or flight, a replay, or a mutant.
+                // A crafted frame forges when its bytes decode to the awaited message (an
+                // empty HIL_ACTUATOR_CONTROLS is MAVLink 2's truncated all-zero one, the
+                // awaited answer while the awaited time is 0): unsigned, nothing tells it
+                // from the controller's.
                 let forges = match a {
                     Attack::Frames(_, hostile) => hostile
                         .iter()
                         .any(|h| self.is_awaited(h.message(now), now.asked_us)),
+                    Attack::Crafted { id, from, payload } => {
+                        MavMessage::parse(MavlinkVersion::V2, *id, payload)
+                            .is_ok_and(|m| self.is_awaited((*from, m), now.asked_us))
+                    }
                     _ => false,
                 };
                 prop_assert!(r.answer.is_none() || forges, "{:?} from {:?}", r, a);
