@@ -11,6 +11,7 @@ use firmware_core::blob::{Provenance, WeightDtype, convert_bytes};
 use firmware_core::observation::ObservationSpec;
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::config::TrainConfig;
+use host_trainer::metrics::lap_text;
 use host_trainer::train::{RunOptions, run};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -240,8 +241,7 @@ fn train(config: &Path, options: RunOptions) -> Result<(), String> {
                     sel.spawn,
                     sel.seed,
                     b.select_crash_rate.unwrap_or(0.0),
-                    b.select_mean_lap_s
-                        .map_or("DNF".to_string(), |l| format!("{l:.2} s"))
+                    lap_text(b.select_mean_lap_s)
                 ),
                 _ => println!(
                     "exported the actor of iteration {} (run.keep_best: the referee's best)",
@@ -268,8 +268,7 @@ fn train(config: &Path, options: RunOptions) -> Result<(), String> {
             "referee ({what}): success {:.3}, crashes {:.3} /s, best lap {}{overtakes}",
             sr,
             m.eval_crash_rate.unwrap_or(0.0),
-            m.eval_best_lap_s
-                .map_or("DNF".to_string(), |l| format!("{l:.2} s"))
+            lap_text(m.eval_best_lap_s)
         );
     }
     match &s.blob {

@@ -94,6 +94,11 @@ pub struct IterationMetrics {
     pub guard_reward_after: Option<f64>,
 }
 
+/// A lap for the terminal: "7.78 s", or "DNF" without a complete lap.
+pub fn lap_text(lap_s: Option<f64>) -> String {
+    lap_s.map_or("DNF".to_string(), |l| format!("{l:.2} s"))
+}
+
 /// Learning curves of a run as one SVG (reward terms, success and crashes, referee laps,
 /// losses and σ), against iterations.
 pub fn learning_curves(name: &str, history: &[IterationMetrics]) -> String {

@@ -10,7 +10,7 @@ use crate::evaluation::{best_evaluation, keep_best_prefers, referee_eval, select
 use crate::export::{actor_blob, actor_from_blob, actor_safetensors};
 use crate::guard::guard_update;
 use crate::imitation::Imitate;
-use crate::metrics::{Console, IterationMetrics};
+use crate::metrics::{Console, IterationMetrics, lap_text};
 use crate::model::{Actor, Critic};
 use crate::nets::{PolicyNet, ValueNet};
 use crate::ppo::Learner;
@@ -411,15 +411,12 @@ fn evaluate<A: PolicyNet, C: ValueNet>(
         write_atomically(&p, &actor_safetensors(&state.learner.actor, arch)?)
             .map_err(crate::error::io(&p))?;
     }
-    let lap = m
-        .eval_best_lap_s
-        .map_or("DNF".to_string(), |l| format!("{l:.2} s"));
+    let lap = lap_text(m.eval_best_lap_s);
     let validation = match m.select_success_rate {
         Some(sr) => format!(
             "  validation: success {sr:.3}, crashes {:.3}/s, mean lap {}",
             m.select_crash_rate.unwrap_or(0.0),
-            m.select_mean_lap_s
-                .map_or("DNF".to_string(), |l| format!("{l:.2} s"))
+            lap_text(m.select_mean_lap_s)
         ),
         None => String::new(),
     };

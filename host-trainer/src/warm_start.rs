@@ -9,7 +9,7 @@ use crate::error::{TrainError, io};
 use crate::evaluation::{referee_eval, referee_prefers};
 use crate::export::{actor_blob, payload_blob};
 use crate::imitation::{Imitate, ImitationRound};
-use crate::metrics::{Console, IterationMetrics};
+use crate::metrics::{Console, IterationMetrics, lap_text};
 use crate::nets::ValueNet;
 use crate::ppo::Learner;
 use crate::run_dir::{RunDir, RunState};
@@ -110,7 +110,7 @@ pub(crate) fn warm_start<A: Imitate, C: ValueNet>(
             "imitation done in {elapsed:.0} s; the student, referee: success {:.3}, crashes {:.3}/s, best lap {}{overtakes}",
             r.success_rate,
             r.crash_rate,
-            r.best_lap_s.map_or("DNF".into(), |l| format!("{l:.2} s")),
+            lap_text(r.best_lap_s),
         );
     }
     let student = dir.file("warm_start.blob");
