@@ -42,8 +42,7 @@ def main() -> None:
     for sigma in a.sigma:
         env = overtake.make_vec_env(
             task="time_trial", num_envs=a.envs, preset=a.preset, seed=a.seed, spawn="stage1",
-            episode_s=a.seconds, random_initial_episode_length=False,
-            velocity_scale_mps=policy.velocity_scale_mps)
+            episode_s=a.seconds, random_initial_episode_length=False, policy=policy)
         obs, _ = env.reset(seed=a.seed)
         rng = np.random.default_rng(a.seed)
         steps = int(round(a.seconds / env.dt_s))

@@ -230,6 +230,8 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "episode_s": args.episode_s,
         "row": args.row,
         "velocity_scale_mps": args.velocity_scale_mps,
+        # RSL-RL's runner spreads the episode lengths itself (init_at_random_ep_len).
+        "random_initial_episode_length": False,
     }
     if race:
         kw["opponent"] = args.opponent

@@ -231,7 +231,7 @@ fn action_change(a: &[f32], b: &[f32], arch: &Architecture, obs: &[f32]) {
 /// again to leave the spawn states behind (the update sees envs mid-flight).
 fn fresh_rollout(policy: &Policy<'_>, std: &[f32], config: &TrainConfig, seed: u64) -> Rollout {
     let (n, steps) = (config.env.num_envs, config.ppo.steps_per_env);
-    let mut env = VecEnv::time_trial(config.env_config(seed).expect("env config"));
+    let mut env = VecEnv::time_trial(config.env_config(seed));
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut rollout = Rollout::new(n, OBS_DIM);
     for _ in 0..2 {

@@ -9,58 +9,88 @@
 //! TOML file.
 
 use serde::{Deserialize, Serialize};
-use sitl::env::{Competition, RewardWeights};
+use sitl::env::{EnvConfig, RaceConfig, RewardWeights};
 use std::path::Path;
 
 mod presets;
 mod validate;
 
-/// A whole training run.
+/// A whole training run. Its TOML sections are `[run]`, `[env]`, `[ppo]`, `[reward]`,
+/// `[pass_decay]`, `[warm_start]`, `[guard]` and `[race]`; the environment's three
+/// (`[env]`, `[reward]`, `[race]`) all land in [`TrainConfig::env`], sitl's one environment
+/// schema.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(from = "TrainFile", into = "TrainFile")]
 pub struct TrainConfig {
     /// Name, seed, budget and bookkeeping.
     pub run: RunConfig,
-    /// The vectorised environment.
-    pub env: EnvSection,
+    /// The vectorised environment: `[env]`, with `[reward]` as `env.reward` (the paper's
+    /// weights when absent) and `[race]` as `env.race` (stage 2: race a frozen opponent;
+    /// absent: the stage-1 time trial). `env.layout` follows `run.row` and `env.seed`
+    /// `run.seed` ([`TrainConfig::env_config`] sets both).
+    pub env: EnvConfig,
     /// PPO hyper-parameters.
     pub ppo: PpoConfig,
-    /// Reward weights (docs/DESIGN.md "Rewards").
-    #[serde(default)]
-    pub reward: RewardWeights,
     /// Optional fall of the pass reward's weight over the run (not in the paper).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pass_decay: Option<PassDecay>,
     /// Optional imitation warm start before PPO (not in the paper).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub warm_start: Option<WarmStart>,
     /// Optional test of every actor update on the measured return (not in the paper).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub guard: Option<Guard>,
-    /// Stage 2: race a frozen opponent (absent: the stage-1 time trial).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub race: Option<RaceSection>,
 }
 
-/// The stage-2 race (docs/DESIGN.md "Learning", paper section 4.2): the opponent, a frozen
-/// stage-1 blob flown by firmware-core's controller, and the competition reward added to the
-/// paper's.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// The TOML file's layout of a [`TrainConfig`]: the sections in the order of the canonical
+/// TOML that [`TrainConfig::hash`] reads (every shipped blob records that hash).
+#[derive(Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct RaceSection {
-    /// The opponent's blob, relative to the working directory (the repository root for the
-    /// commands in the docs). Paper: the stage-1 policy (row A).
-    pub opponent: String,
-    /// "dense" (eq. 6; rows B, C, E-G), "sparse" (eq. 7; row D), or "lead" (not the paper's:
-    /// the lead in track progress, which eq. 6's body-frame measure can be gamed around).
-    pub competition: Competition,
-    /// Weight of the competition reward (× dt like every term). Paper: 0.5.
-    #[serde(default = "default_competition_weight")]
-    pub competition_weight: f32,
+struct TrainFile {
+    run: RunConfig,
+    env: EnvConfig,
+    ppo: PpoConfig,
+    #[serde(default)]
+    reward: RewardWeights,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pass_decay: Option<PassDecay>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    warm_start: Option<WarmStart>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    guard: Option<Guard>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    race: Option<RaceConfig>,
 }
 
-fn default_competition_weight() -> f32 {
-    0.5
+impl From<TrainFile> for TrainConfig {
+    fn from(f: TrainFile) -> Self {
+        let mut config = Self {
+            env: EnvConfig {
+                reward: f.reward,
+                race: f.race,
+                ..f.env
+            },
+            run: f.run,
+            ppo: f.ppo,
+            pass_decay: f.pass_decay,
+            warm_start: f.warm_start,
+            guard: f.guard,
+        };
+        config.env = config.env_config(config.run.seed);
+        config
+    }
+}
+
+impl From<TrainConfig> for TrainFile {
+    fn from(c: TrainConfig) -> Self {
+        Self {
+            reward: c.env.reward,
+            race: c.env.race.clone(),
+            run: c.run,
+            env: c.env,
+            ppo: c.ppo,
+            pass_decay: c.pass_decay,
+            warm_start: c.warm_start,
+            guard: c.guard,
+        }
+    }
 }
 
 /// A line search on the measured return after each PPO update (not in the paper; see
@@ -251,10 +281,6 @@ fn default_min_learning_rate() -> f64 {
     1e-5
 }
 
-fn is_zero(v: &f32) -> bool {
-    *v == 0.0
-}
-
 fn default_max_learning_rate() -> f64 {
     1e-2
 }
@@ -267,62 +293,8 @@ fn is_default_min_learning_rate(v: &f64) -> bool {
     *v == default_min_learning_rate()
 }
 
-fn default_velocity_scale() -> f32 {
-    3.0
-}
-
 fn default_eval_every() -> u32 {
     10
-}
-
-/// The vectorised environment of a run.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct EnvSection {
-    /// Parallel envs. Paper: 8,192 (on a GPU).
-    pub num_envs: usize,
-    /// Dynamics preset: "paper", "nominal" or "realistic".
-    pub preset: String,
-    /// Spawn: "stage1" (the paper's fixed spawn) or "along-track".
-    pub spawn: String,
-    /// Episode length before a time-out (s). Paper stage 1: 15.
-    pub episode_s: f32,
-    /// Start envs at random points of their first episode (RSL-RL). Paper: true.
-    pub random_initial_episode_length: bool,
-    /// Divisor of the body-frame velocity in the observation (m/s). Paper: 3 (saturating at
-    /// 3 m/s). Default 3. Recorded in the exported blob's observation spec.
-    #[serde(default = "default_velocity_scale")]
-    pub velocity_scale_mps: f32,
-    /// Highest initial speed along the spawn heading (m/s), drawn uniformly from [0, this].
-    /// Paper: 0 (at rest). Default 0.
-    #[serde(default)]
-    pub spawn_speed_mps: f32,
-    /// Share of respawns at the paper's stage-1 spawn whatever `spawn` is. Default 0.
-    #[serde(default)]
-    pub stage1_fraction: f32,
-    /// Share of the respawns that are neither replayed nor stage-1 at the paper's stage-2
-    /// spawn, at rest 2 m or 1 m before a random gate (`sitl::env::EnvConfig::stage2_fraction`):
-    /// where the stage-1 policy starts when it is stage 2's opponent. Paper: 0. Default 0
-    /// (left out of the canonical TOML at 0).
-    #[serde(default, skip_serializing_if = "is_zero")]
-    pub stage2_fraction: f32,
-    /// Share of respawns from a state after one of the env's own recent gate passes
-    /// (`sitl::env::EnvConfig::replay_fraction`). Paper: 0. Default 0 (left out of the
-    /// canonical TOML at 0, so older configs keep their hash).
-    #[serde(default, skip_serializing_if = "is_zero")]
-    pub replay_fraction: f32,
-    /// Share of the other respawns (neither replayed nor stage-1 nor stage-2) on the `paper` preset's
-    /// time-optimal lap (`sitl::env::EnvConfig::racing_line_fraction`). Paper: 0. Default 0
-    /// (left out of the canonical TOML at 0).
-    #[serde(default, skip_serializing_if = "is_zero")]
-    pub racing_line_fraction: f32,
-    /// Fold the track onto one half by its mirror symmetry (`firmware_core::mirror`): steps
-    /// flying to the mirrored half's gates (g3-g5) observe their mirror image and fly the
-    /// image's action renumbered back, so the network learns g0-g2 from both halves' flights.
-    /// Recorded in the blob (observation pipeline version 2), so the controller folds as
-    /// training did. Paper: false. Default false (left out of the canonical TOML).
-    #[serde(default, skip_serializing_if = "is_false")]
-    pub fold_mirror: bool,
 }
 
 /// A falling σ ceiling ([`PpoConfig::max_std_decay`]). Its iterations are absolute, not
@@ -626,17 +598,17 @@ impl TrainConfig {
     /// weight lowered by `pass_decay` when there is one.
     pub fn reward_at(&self, iteration: u32) -> RewardWeights {
         let Some(d) = &self.pass_decay else {
-            return self.reward;
+            return self.env.reward;
         };
         RewardWeights {
             pass: linear_fall(
-                self.reward.pass,
+                self.env.reward.pass,
                 d.final_weight,
                 d.from_iteration,
                 d.to_iteration,
                 iteration,
             ),
-            ..self.reward
+            ..self.env.reward
         }
     }
 

@@ -15,9 +15,9 @@ use sitl::referee::SpawnMode;
 /// 45 s races against the config's opponent from stage-2 spawns (seed `run.eval_seed`).
 pub fn referee_eval(blob: &[u8], preset: Preset, config: &TrainConfig) -> Option<Report> {
     let spec = PilotSpec::from_blob("training", blob).ok()?;
-    let opponent = match &config.race {
+    let opponent = match &config.env.race {
         None => None,
-        Some(r) => Some(PilotSpec::load(&r.opponent, &preset).ok()?),
+        Some(r) => Some(PilotSpec::load(&r.opponent.to_string_lossy(), &preset).ok()?),
     };
     let eval = EvalConfig {
         preset,

@@ -58,7 +58,7 @@ pub fn payload_blob(
         .map_err(|_| TrainError::Export("run.name longer than 32 bytes".into()))?;
     let mut preset = heapless::String::new();
     preset
-        .push_str(&config.env.preset)
+        .push_str(config.env.preset.name())
         .map_err(|_| TrainError::Export("preset name longer than 16 bytes".into()))?;
     let provenance = Provenance {
         name,

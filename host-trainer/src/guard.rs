@@ -25,7 +25,7 @@ pub fn measured_return(
 ) -> Result<f64, TrainError> {
     let policy = Policy::from_payload(arch, payload)
         .map_err(|e| TrainError::Export(format!("actor does not load as a blob: {e}")))?;
-    let mut c = config.env_config(seed)?;
+    let mut c = config.env_config(seed);
     c.num_envs = guard.envs;
     let mut env = VecEnv::new(c).map_err(|e| TrainError::Unsupported(e.to_string()))?;
     let mut rng = generator(seed, 7);

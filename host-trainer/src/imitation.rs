@@ -32,7 +32,6 @@ use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-use sitl::dynamics::Preset;
 use sitl::env::{EnvStats, VecEnv};
 
 /// One DAgger round, a line of `imitation.jsonl`.
@@ -205,7 +204,7 @@ enum Teacher {
 impl Teacher {
     fn of(config: &TrainConfig, warm: &WarmStart) -> Result<Self, TrainError> {
         let Some(path) = &warm.teacher_blob else {
-            let preset = config.preset().unwrap_or_else(|_| Preset::paper());
+            let preset = config.preset();
             let mut c = sitl::pilot::baseline_config_for(&preset);
             c.cruise_speed_mps = warm.teacher_cruise_mps;
             return Ok(Self::Baseline(Box::new(BaselineController::new(

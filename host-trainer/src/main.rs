@@ -253,11 +253,13 @@ fn train(config: &Path, options: RunOptions) -> Result<(), String> {
         None => m,
     };
     if let Some(sr) = m.eval_success_rate {
-        let what = match &cfg.race {
+        let what = match &cfg.env.race {
             None => "45 s from the stage-1 spawn".to_string(),
             Some(r) => format!(
                 "{} races of 45 s against {}, seed {}",
-                cfg.run.eval_races, r.opponent, cfg.run.eval_seed
+                cfg.run.eval_races,
+                r.opponent.display(),
+                cfg.run.eval_seed
             ),
         };
         let overtakes = match (m.eval_overtakes, m.eval_sustained_overtakes) {

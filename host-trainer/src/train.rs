@@ -4,7 +4,7 @@
 //! ([`crate::export`]). [`run`] reads top to bottom: `start`, then `iteration` after
 //! iteration, each followed by `evaluate` and the bookkeeping, then `finish`.
 
-use crate::config::{EnvSection, PpoConfig, TrainConfig};
+use crate::config::{PpoConfig, TrainConfig};
 use crate::error::TrainError;
 use crate::evaluation::{best_evaluation, keep_best_prefers, referee_eval, selection_eval};
 use crate::export::{actor_blob, actor_from_blob, actor_safetensors};
@@ -21,7 +21,7 @@ use crate::run_dir::{RunDir, RunState};
 use crate::warm_start::warm_start;
 use burn::tensor::Device;
 use firmware_core::policy::{Architecture, Policy};
-use sitl::env::VecEnv;
+use sitl::env::{EnvConfig, VecEnv};
 use sitl::files::write_atomically;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -145,14 +145,11 @@ fn start<A: Imitate, C: ValueNet>(
 ) -> Result<RunState<A, C>, TrainError> {
     let arch = config.architecture()?;
     // Refuse an unreadable opponent before any work.
-    TrainConfig {
-        env: EnvSection {
-            num_envs: 1,
-            ..config.env.clone()
-        },
-        ..config.clone()
-    }
-    .make_env(0)?;
+    VecEnv::new(EnvConfig {
+        num_envs: 1,
+        ..config.env_config(0)
+    })
+    .map_err(|e| TrainError::Unsupported(e.to_string()))?;
     let device = options.device.clone();
     if options.resume {
         return dir.load_checkpoint(config, &arch, &device);
@@ -339,7 +336,7 @@ fn iteration<A: PolicyNet, C: ValueNet>(
     let per_step = |v: f64| v / env_stats.steps.max(1) as f64;
     let sim_s = env_stats.steps as f64 * dt;
     let std_now = state.learner.actor.std();
-    let race = config.race.is_some();
+    let race = config.env.race.is_some();
     Ok(IterationMetrics {
         iteration: state.iteration,
         samples: state.samples,
@@ -383,19 +380,19 @@ fn evaluate<A: PolicyNet, C: ValueNet>(
     console: &Console,
 ) -> Result<(), TrainError> {
     let blob = actor_blob(&state.learner.actor, config, state.iteration)?;
-    if let Some(r) = referee_eval(&blob, config.preset()?, config) {
+    if let Some(r) = referee_eval(&blob, config.preset(), config) {
         m.eval_success_rate = Some(r.success_rate);
         m.eval_crash_rate = Some(r.crash_rate);
         m.eval_best_lap_s = r.best_lap_s;
         m.eval_gates = Some(r.gates_passed);
-        if config.race.is_some() {
+        if config.env.race.is_some() {
             m.eval_overtakes = Some(r.overtakes);
             m.eval_sustained_overtakes = Some(r.sustained_overtakes);
         }
     }
     if let Some(select) = &config.run.select
         && state.iteration >= select.from_iteration
-        && let Some(r) = selection_eval(&blob, config.preset()?, select)
+        && let Some(r) = selection_eval(&blob, config.preset(), select)
     {
         m.select_success_rate = Some(r.success_rate);
         m.select_crash_rate = Some(r.crash_rate);

@@ -49,7 +49,7 @@ pub(crate) fn warm_start<A: Imitate, C: ValueNet>(
     let mut log = RoundLog {
         config,
         dir,
-        preset: config.preset()?,
+        preset: config.preset(),
         select: warm.keep_best_round,
         console: &console,
         text: String::new(),
@@ -97,8 +97,8 @@ pub(crate) fn warm_start<A: Imitate, C: ValueNet>(
         device.clone(),
     );
     let blob = actor_blob(&state.learner.actor, config, 0)?;
-    if let Some(r) = referee_eval(&blob, config.preset()?, config) {
-        let overtakes = if config.race.is_some() {
+    if let Some(r) = referee_eval(&blob, config.preset(), config) {
+        let overtakes = if config.env.race.is_some() {
             format!(
                 ", {} overtakes ({} sustained)",
                 r.overtakes, r.sustained_overtakes

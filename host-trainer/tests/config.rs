@@ -28,12 +28,12 @@ fn shipped_configs_parse() {
     let paper = TrainConfig::parse(PAPER).unwrap();
     // The paper's settings stay reachable.
     assert_eq!(paper.env.num_envs, 8192);
-    assert_eq!(paper.env.spawn, "stage1");
+    assert_eq!(paper.env.spawn, sitl::referee::SpawnMode::Stage1);
     assert_eq!(paper.ppo.steps_per_env, 100);
     assert_eq!((paper.ppo.epochs, paper.ppo.minibatches), (5, 4));
     assert_eq!(paper.ppo.learning_rate, 1e-4);
     assert_eq!(paper.ppo.entropy_coef, 0.01);
-    assert_eq!(paper.reward, RewardWeights::default());
+    assert_eq!(paper.env.reward, RewardWeights::default());
     assert_ne!(ours.hash(), paper.hash());
     assert_eq!(ours.hash(), TrainConfig::parse(STAGE1).unwrap().hash());
     // Ours learns from a random network too; the imitation pipeline stays reachable.
@@ -283,13 +283,13 @@ fn the_pass_weight_falls_linearly_between_its_iterations() {
         assert!((w.pass - want).abs() < 1e-6, "iteration {i}: {}", w.pass);
         assert_eq!(
             RewardWeights {
-                pass: c.reward.pass,
+                pass: c.env.reward.pass,
                 ..w
             },
-            c.reward
+            c.env.reward
         );
     }
-    assert_eq!(plain.reward_at(10_000), plain.reward);
+    assert_eq!(plain.reward_at(10_000), plain.env.reward);
     assert_ne!(c.hash(), plain.hash());
     assert!(!toml::to_string(&plain).unwrap().contains("pass_decay"));
     assert_eq!(
@@ -438,4 +438,117 @@ fn the_mirror_fold_is_checked_hashed_and_reaches_the_spec() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("fold_mirror") && e.contains("warm start"), "{e}");
+}
+
+/// Every committed config (the shipped pipelines in `configs/` and each policy's own in
+/// `policies/*/config.toml`) round-trips through sitl's environment schema: parsed,
+/// written back and parsed again it is the same config with the same hash, and its
+/// environment validates on its own.
+#[test]
+fn every_committed_config_round_trips_through_the_env_schema() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let mut paths: Vec<_> = std::fs::read_dir(root.join("host-trainer/configs"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    for entry in std::fs::read_dir(root.join("policies")).unwrap() {
+        paths.push(entry.unwrap().path().join("config.toml"));
+    }
+    let mut n = 0;
+    for path in paths
+        .iter()
+        .filter(|p| p.is_file() && p.extension().is_some_and(|e| e == "toml"))
+    {
+        let config = TrainConfig::load(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let written = toml::to_string(&config).unwrap();
+        let again = TrainConfig::parse(&written).unwrap();
+        assert_eq!(again, config, "{}", path.display());
+        assert_eq!(again.hash(), config.hash(), "{}", path.display());
+        config.env_config(0).validate().unwrap();
+        n += 1;
+    }
+    assert!(n >= 20, "{n} configs");
+}
+
+/// The shipped pipelines' environments are sitl's named ones, which the Python binding's
+/// defaults come from (`overtake.shipped_env`): stage 1's `[env]` and `[reward]` are
+/// `EnvConfig::stage1`, and the row-G race's are `EnvConfig::stage2` against its opponent.
+#[test]
+fn the_shipped_environments_are_sitls_named_ones() {
+    use sitl::env::EnvConfig;
+    let stage1 = TrainConfig::parse(STAGE1).unwrap();
+    assert_eq!(
+        stage1.env,
+        EnvConfig {
+            seed: 1,
+            ..EnvConfig::stage1(512)
+        }
+    );
+    let race = TrainConfig::parse(include_str!("../configs/stage2_G.toml")).unwrap();
+    let opponent = race.env.race.as_ref().unwrap().opponent.clone();
+    assert_eq!(
+        race.env,
+        EnvConfig {
+            seed: 1,
+            ..EnvConfig::stage2(128, opponent)
+        }
+    );
+}
+
+/// An environment field out of its range is refused with the field as the config writes
+/// it, whichever of the environment's three sections it is in.
+#[test]
+fn environment_errors_name_the_field() {
+    let race = include_str!("../configs/stage2_G.toml");
+    for (text, from, to, field) in [
+        (
+            STAGE1,
+            "velocity_scale_mps = 12.0",
+            "velocity_scale_mps = -1.0",
+            "env.velocity_scale_mps",
+        ),
+        (
+            STAGE1,
+            "num_envs = 512",
+            "num_envs = 1000000000",
+            "env.num_envs",
+        ),
+        (
+            STAGE1,
+            "episode_s = 15.0",
+            "episode_s = nan",
+            "env.episode_s",
+        ),
+        (
+            STAGE1,
+            "spawn_speed_mps = 8.0",
+            "spawn_speed_mps = 80.0",
+            "env.spawn_speed_mps",
+        ),
+        (
+            STAGE1,
+            "progress = 0.5",
+            "progress = nan",
+            "reward.progress",
+        ),
+        (STAGE1, "crash = 1.0", "crash = -1.0", "reward.crash"),
+        (
+            race,
+            "competition_weight = 0.5",
+            "competition_weight = inf",
+            "race.competition_weight",
+        ),
+        (
+            race,
+            "spawn = \"stage2\"",
+            "spawn = \"along-track\"",
+            "env.spawn",
+        ),
+    ] {
+        assert!(text.contains(from), "{from}");
+        let e = TrainConfig::parse(&text.replace(from, to))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains(field), "{to}: {e}");
+    }
 }

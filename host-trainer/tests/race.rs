@@ -17,9 +17,11 @@ const CONFIG: &str = include_str!("../configs/smoke_race.toml");
 
 fn config() -> TrainConfig {
     let mut c = TrainConfig::parse(CONFIG).unwrap();
-    let race = c.race.as_mut().unwrap();
+    let race = c.env.race.as_mut().unwrap();
     // The config names the opponent from the repository root; the tests run in the crate.
-    race.opponent = format!("{}/../{}", env!("CARGO_MANIFEST_DIR"), race.opponent);
+    race.opponent = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .join(&race.opponent);
     c
 }
 
@@ -100,7 +102,7 @@ fn inconsistent_race_configs_are_refused_with_a_reason() {
 #[test]
 fn a_missing_opponent_is_an_error_before_any_work() {
     let mut c = config();
-    c.race.as_mut().unwrap().opponent = "/nonexistent/opponent.blob".into();
+    c.env.race.as_mut().unwrap().opponent = "/nonexistent/opponent.blob".into();
     let out = tmp("missing");
     let e = run(&c, &options(out.clone())).unwrap_err().to_string();
     assert!(e.contains("/nonexistent/opponent.blob"), "{e}");

@@ -95,32 +95,24 @@ fn burn_lstm_actors_act_as_firmware_core_over_a_window() {
 
 // ---- Recurrent PPO's bookkeeping ------------------------------------------------------
 
-use firmware_core::blob::AlignedBytes;
-use firmware_core::observation::ObservationSpec;
 use host_trainer::batch::Minibatch;
 use host_trainer::config::TrainConfig;
 use host_trainer::ppo::RecurrentLearner;
 use host_trainer::recurrent::RecurrentCritic;
 use host_trainer::rollout::Rollout;
 use host_trainer::rollout::collect_rollout;
-use sitl::env::{Competition, EnvConfig, RaceConfig, VecEnv};
+use sitl::env::{EnvConfig, VecEnv};
 
 fn race_env(envs: usize) -> VecEnv {
-    let raw = std::fs::read(concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../policies/stage1_guarded.blob"
-    ))
-    .unwrap();
     VecEnv::new(EnvConfig {
-        observation: ObservationSpec::paper(
-            firmware_core::observation::ObservationLayout::FullOpponent30,
-        ),
-        race: Some(RaceConfig {
-            opponent: AlignedBytes::new(&raw),
-            competition: Competition::Dense,
-            competition_weight: 0.5,
-        }),
-        ..EnvConfig::paper_along_track(envs, 4)
+        seed: 4,
+        ..EnvConfig::stage2(
+            envs,
+            concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/../policies/stage1_guarded.blob"
+            ),
+        )
     })
     .unwrap()
 }

@@ -321,7 +321,7 @@ fn a_selection_exports_the_validations_best_across_a_resume() {
         &sitl::pilot::PilotSpec::from_blob("exported", &exported).unwrap(),
         None,
         &sitl::eval::EvalConfig {
-            preset: config.preset().unwrap(),
+            preset: config.preset(),
             episodes: select.episodes,
             seconds: 45.0,
             seed: select.seed,

@@ -66,7 +66,7 @@ fn the_folded_policy_is_the_committed_recipe_and_its_finish() {
     let mut undone = finish.clone();
     undone.run.name = fold1.run.name.clone();
     undone.run.iterations = fold1.run.iterations;
-    undone.reward.pass = fold1.reward.pass;
+    undone.env.reward.pass = fold1.env.reward.pass;
     undone.ppo.max_std = fold1.ppo.max_std;
     undone.ppo.max_std_decay = fold1.ppo.max_std_decay.clone();
     assert_eq!(undone, fold1);
@@ -139,7 +139,7 @@ fn shipped_blob(name: &str, config: &str) -> (Vec<u8>, TrainConfig, u32) {
         "{name} was made with another config"
     );
     assert_eq!(p.seed, config.run.seed);
-    assert_eq!(p.preset.as_str(), config.env.preset);
+    assert_eq!(p.preset.as_str(), config.env.preset.name());
     assert_eq!(p.name.as_str(), config.run.name);
     assert_eq!(
         blob.header().observation.velocity_scale_mps,
@@ -282,8 +282,8 @@ fn check_race(name: &str, config_name: &str) {
             "{name}: the warm start did not end with its best round"
         );
     }
-    let opponent = &config.race.as_ref().unwrap().opponent;
-    races_as_recorded(name, &raw, opponent, name);
+    let opponent = &config.env.race.as_ref().unwrap().opponent;
+    races_as_recorded(name, &raw, &opponent.to_string_lossy(), name);
 }
 
 /// `policies/stage2_G_student.blob` is the first warm-start stage of row G, made by the

@@ -105,14 +105,11 @@ impl Preset {
         }
     }
 
-    /// The preset called `name`.
+    /// The preset called `name` ([`crate::env::PresetName`]).
     pub fn by_name(name: &str) -> Option<Self> {
-        match name {
-            "paper" => Some(Self::paper()),
-            "nominal" => Some(Self::nominal()),
-            "realistic" => Some(Self::realistic()),
-            _ => None,
-        }
+        name.parse::<crate::env::PresetName>()
+            .ok()
+            .map(crate::env::PresetName::preset)
     }
 
     /// Propeller speed that holds hover (rpm).

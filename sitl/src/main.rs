@@ -16,6 +16,7 @@ use clap::{Args, Parser, Subcommand};
 use sitl::bridge::fc::FcConfig;
 use sitl::bridge::race::{Entrant, RaceConfig, Transport};
 use sitl::dynamics::Preset;
+use sitl::env::PresetName;
 use sitl::eval::{EvalConfig, Report, evaluate};
 use sitl::pilot::PilotSpec;
 use sitl::referee::{EPISODE_SECONDS, SpawnMode};
@@ -161,7 +162,7 @@ struct Scoring {
     seed: u64,
     /// Where drones start and restart: stage1 (time trials' default), stage2 (races'
     /// default), or along-track.
-    #[arg(long, value_parser = parse_spawn)]
+    #[arg(long, value_parser = clap::value_parser!(SpawnMode))]
     spawn: Option<SpawnMode>,
     /// Also write the report as JSON to this file (`sitl race` adds the controllers' links).
     #[arg(long)]
@@ -241,12 +242,7 @@ struct FlyArgs {
 }
 
 fn parse_preset(s: &str) -> Result<Preset, String> {
-    Preset::by_name(s).ok_or_else(|| format!("unknown preset '{s}' (paper, nominal, realistic)"))
-}
-
-fn parse_spawn(s: &str) -> Result<SpawnMode, String> {
-    SpawnMode::by_name(s)
-        .ok_or_else(|| format!("unknown spawn '{s}' (stage1, stage2, along-track)"))
+    s.parse::<PresetName>().map(PresetName::preset)
 }
 
 fn parse_seconds(s: &str) -> Result<f32, String> {

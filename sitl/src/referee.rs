@@ -314,8 +314,10 @@ impl Referee {
     }
 }
 
-/// Where drones start (and restart after a crash).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+/// Where drones start (and restart after a crash). Configs and flags write it `stage1`,
+/// `stage2` or `along-track`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
 pub enum SpawnMode {
     /// The paper's fixed stage-1 spawn, (−1, −1, 1) targeting g0 (time trials).
     Stage1,
@@ -324,6 +326,14 @@ pub enum SpawnMode {
     Stage2,
     /// A random point of the centreline, at rest (time trials).
     AlongTrack,
+}
+
+impl core::str::FromStr for SpawnMode {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Self::by_name(s).ok_or_else(|| format!("unknown spawn '{s}' (stage1, stage2, along-track)"))
+    }
 }
 
 impl SpawnMode {

@@ -183,25 +183,34 @@ use firmware_core::blob::AlignedBytes;
 use sitl::env::{Competition, RaceConfig, dense_competition};
 use sitl::world::stage2_spawn;
 
+const OPPONENT: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/../policies/stage1_guarded.blob"
+);
+
 fn opponent_blob() -> Vec<u8> {
-    let path = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../policies/stage1_guarded.blob"
-    );
-    std::fs::read(path).expect("the shipped stage-1 policy")
+    std::fs::read(OPPONENT).expect("the shipped stage-1 policy")
 }
 
 fn race_config(num_envs: usize, competition: Competition) -> EnvConfig {
     EnvConfig {
         random_initial_episode_length: false,
-        observation: ObservationSpec::paper(ObservationLayout::FullOpponent30),
+        velocity_scale_mps: 3.0,
         race: Some(RaceConfig {
-            opponent: AlignedBytes::new(&opponent_blob()),
+            opponent: OPPONENT.into(),
             competition,
             competition_weight: 0.5,
         }),
-        ..EnvConfig::paper_along_track(num_envs, 11)
+        seed: 11,
+        ..EnvConfig::stage2(num_envs, OPPONENT)
     }
+}
+
+/// `bytes` in a file of its own under the system's temporary directory.
+fn blob_file(name: &str, bytes: &[u8]) -> std::path::PathBuf {
+    let path = std::env::temp_dir().join(format!("overtake-env-{}-{name}", std::process::id()));
+    std::fs::write(&path, bytes).unwrap();
+    path
 }
 
 /// One race step against a hand computation: the paper's stage-2 spawn (docs/DESIGN.md "Spawns"), the opponent commanded by
@@ -319,7 +328,7 @@ fn a_bad_opponent_is_refused() {
     let mut raw = opponent_blob();
     let last = raw.len() - 1;
     raw[last] ^= 0x40;
-    c.race.as_mut().unwrap().opponent = AlignedBytes::new(&raw);
+    c.race.as_mut().unwrap().opponent = blob_file("corrupt.blob", &raw);
     let e = VecEnv::new(c).unwrap_err();
     assert!(e.to_string().contains("opponent"), "{e}");
 }
@@ -701,7 +710,7 @@ fn mirrored_observations_are_the_reflection_by_hand() {
 fn a_folded_env_observes_the_mirrored_half_as_its_image() {
     let plain_config = EnvConfig::paper_along_track(64, 5);
     let folded_config = EnvConfig {
-        observation: plain_config.observation.with_fold(true),
+        fold_mirror: true,
         ..plain_config.clone()
     };
     let mut plain = VecEnv::time_trial(plain_config);
@@ -743,4 +752,170 @@ fn a_folded_env_observes_the_mirrored_half_as_its_image() {
         assert_eq!(plain.dones(), folded.dones(), "step {step}");
     }
     assert!(seen[0] > 100 && seen[1] > 100, "{seen:?}");
+}
+
+// ---- The environment's schema ---------------------------------------------------------
+
+/// `EnvConfig` round-trips through serde (the `[env]` table; the other sections are not
+/// part of it), refuses unknown fields, and its `validate` names the field out of range.
+#[test]
+fn the_env_config_round_trips_and_names_bad_fields() {
+    let shipped = EnvConfig::stage1(512);
+    let json = serde_json::to_string(&shipped).unwrap();
+    let back: EnvConfig = serde_json::from_str(&json).unwrap();
+    // Everything but the reward (`[reward]`, a table of its own) comes back.
+    assert_eq!(
+        EnvConfig {
+            reward: shipped.reward,
+            ..back.clone()
+        },
+        shipped
+    );
+    assert_eq!(back.observation_spec(), shipped.observation_spec());
+    assert!(json.contains("\"spawn\":\"along-track\"") && json.contains("\"preset\":\"paper\""));
+    assert!(serde_json::from_str::<EnvConfig>(&json.replace("num_envs", "num_env")).is_err());
+    let paper = EnvConfig::paper(8);
+    paper.validate().unwrap();
+    let cases: [(EnvConfig, &str); 8] = [
+        (
+            EnvConfig {
+                num_envs: 0,
+                ..paper.clone()
+            },
+            "num_envs",
+        ),
+        (
+            EnvConfig {
+                num_envs: sitl::env::MAX_ENVS + 1,
+                ..paper.clone()
+            },
+            "num_envs",
+        ),
+        (
+            EnvConfig {
+                episode_s: f32::NAN,
+                ..paper.clone()
+            },
+            "episode_s",
+        ),
+        (
+            EnvConfig {
+                velocity_scale_mps: 0.0,
+                ..paper.clone()
+            },
+            "velocity_scale_mps",
+        ),
+        (
+            EnvConfig {
+                stage1_fraction: 1.5,
+                ..paper.clone()
+            },
+            "stage1_fraction",
+        ),
+        (
+            EnvConfig {
+                spawn_speed_mps: -1.0,
+                ..paper.clone()
+            },
+            "spawn_speed_mps",
+        ),
+        (
+            EnvConfig {
+                reward: sitl::env::RewardWeights {
+                    progress: f32::NAN,
+                    ..Default::default()
+                },
+                ..paper.clone()
+            },
+            "reward.progress",
+        ),
+        (
+            EnvConfig {
+                layout: ObservationLayout::FullOpponent30,
+                ..paper.clone()
+            },
+            "layout",
+        ),
+    ];
+    for (config, field) in cases {
+        let e = config.validate().unwrap_err();
+        assert_eq!(e.field, field, "{e}");
+        assert!(VecEnv::new(config).is_err());
+    }
+    let mut race = race_config(1, Competition::Dense);
+    race.spawn = SpawnMode::AlongTrack;
+    assert_eq!(race.validate().unwrap_err().field, "spawn");
+}
+
+/// An opponent that is missing, or a path that is no blob at all (endless), is refused when
+/// the environment is built, with the path, and without reading without end.
+#[test]
+fn an_unreadable_opponent_is_refused_with_its_path() {
+    let mut c = race_config(1, Competition::Dense);
+    c.race.as_mut().unwrap().opponent = "/nonexistent/opponent.blob".into();
+    match VecEnv::new(c.clone()).unwrap_err() {
+        sitl::env::EnvError::ReadOpponent { kind, path, .. } => {
+            assert_eq!(kind, std::io::ErrorKind::NotFound);
+            assert_eq!(path, std::path::Path::new("/nonexistent/opponent.blob"));
+        }
+        e => panic!("{e}"),
+    }
+    if std::path::Path::new("/dev/zero").exists() {
+        c.race.as_mut().unwrap().opponent = "/dev/zero".into();
+        let e = VecEnv::new(c).unwrap_err().to_string();
+        assert!(e.contains("/dev/zero") && e.contains("not a blob"), "{e}");
+    }
+}
+
+/// A NaN or infinite action component flies as 0 (the same flight as a 0) and is counted.
+#[test]
+fn nonfinite_actions_fly_as_zero_and_are_counted() {
+    let mut zeros = VecEnv::time_trial(config(2));
+    let mut nans = VecEnv::time_trial(config(2));
+    let hover = ActionMap::PAPER.action_for_rpm(Preset::paper().hover_rpm());
+    for k in 0..20 {
+        let bad = [f32::NAN, f32::INFINITY, f32::NEG_INFINITY, f32::NAN][k % 4];
+        zeros
+            .step(&[hover, 0.0, hover, hover, hover, hover, hover, hover])
+            .unwrap();
+        nans.step(&[hover, bad, hover, hover, hover, hover, hover, hover])
+            .unwrap();
+        assert_eq!(zeros.observations(), nans.observations());
+    }
+    assert_eq!(zeros.take_stats().nonfinite_actions, 0);
+    assert_eq!(nans.take_stats().nonfinite_actions, 20);
+}
+
+/// A policy that observes otherwise than the envs (the shipped stage-1 policy, velocity
+/// scale 12 and folded, in the paper's environment) is refused, naming each difference;
+/// the envs built as the policy observes accept it.
+#[test]
+fn a_policy_that_observes_otherwise_is_refused() {
+    let raw = std::fs::read(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../policies/stage1.blob"
+    ))
+    .unwrap();
+    let bytes = AlignedBytes::new(&raw);
+    let blob = firmware_core::blob::Blob::parse(bytes.as_bytes()).unwrap();
+    let spec = blob.header().observation;
+    let paper = EnvConfig::paper(4);
+    let e = paper.check_policy(&spec).unwrap_err().to_string();
+    assert!(
+        e.contains("velocity_scale_mps") && e.contains("fold_mirror"),
+        "{e}"
+    );
+    paper
+        .clone()
+        .observing_as(&spec)
+        .check_policy(&spec)
+        .unwrap();
+    EnvConfig::stage1(4).check_policy(&spec).unwrap();
+    let race = race_config(1, Competition::Dense);
+    assert!(
+        race.check_policy(&spec)
+            .unwrap_err()
+            .to_string()
+            .contains("layout")
+    );
 }

@@ -3,11 +3,11 @@
 //! [`TrainConfig::ours`] (`host-trainer/tests/config.rs` holds each equal to its TOML file).
 
 use super::{
-    EnvSection, PassDecay, PpoConfig, RunConfig, Selection, StdDecay, TrainConfig, UpdateKind,
-    WarmStart, default_eval_every, default_eval_races, default_max_learning_rate,
-    default_min_learning_rate, default_velocity_scale, one,
+    PassDecay, PpoConfig, RunConfig, Selection, StdDecay, TrainConfig, UpdateKind, WarmStart,
+    default_eval_every, default_eval_races, default_max_learning_rate, default_min_learning_rate,
+    one,
 };
-use sitl::env::RewardWeights;
+use sitl::env::EnvConfig;
 
 impl Default for TrainConfig {
     /// The paper's stage-1 run: [`TrainConfig::paper`].
@@ -29,14 +29,19 @@ impl TrainConfig {
                 checkpoint_every: 50,
                 ..RunConfig::default()
             },
-            env: EnvSection::default(),
+            env: EnvConfig::paper(8192),
             ppo: PpoConfig::default(),
-            reward: RewardWeights::default(),
             warm_start: None,
             pass_decay: None,
             guard: None,
-            race: None,
         }
+        .with_env_derived()
+    }
+
+    /// `self` with `env.layout` and `env.seed` set from `run` as a parsed config has them.
+    fn with_env_derived(mut self) -> Self {
+        self.env = self.env_config(self.run.seed);
+        self
     }
 
     /// This project's stage-1 pipeline (`configs/stage1.toml`), PPO from a random network:
@@ -63,18 +68,7 @@ impl TrainConfig {
                 }),
                 ..RunConfig::default()
             },
-            env: EnvSection {
-                num_envs: 512,
-                spawn: "along-track".into(),
-                velocity_scale_mps: 12.0,
-                spawn_speed_mps: 8.0,
-                stage1_fraction: 0.2,
-                stage2_fraction: 0.25,
-                replay_fraction: 0.3,
-                racing_line_fraction: 0.0,
-                fold_mirror: true,
-                ..EnvSection::default()
-            },
+            env: EnvConfig::stage1(512),
             ppo: PpoConfig {
                 learning_rate: 3e-4,
                 max_std: Some(1.0),
@@ -87,10 +81,6 @@ impl TrainConfig {
                 init_hover: true,
                 ..PpoConfig::default()
             },
-            reward: RewardWeights {
-                crash: 1.0,
-                ..RewardWeights::default()
-            },
             warm_start: None,
             pass_decay: Some(PassDecay {
                 final_weight: 0.0,
@@ -98,8 +88,8 @@ impl TrainConfig {
                 to_iteration: 2000,
             }),
             guard: None,
-            race: None,
         }
+        .with_env_derived()
     }
 }
 
@@ -118,27 +108,6 @@ impl Default for RunConfig {
             eval_seed: 0,
             keep_best: false,
             select: None,
-        }
-    }
-}
-
-impl Default for EnvSection {
-    /// The paper's: 8,192 envs of the `paper` preset from the stage-1 spawn at rest, 15 s
-    /// episodes with random initial lengths, velocities observed at 3 m/s full scale.
-    fn default() -> Self {
-        Self {
-            num_envs: 8192,
-            preset: "paper".into(),
-            spawn: "stage1".into(),
-            episode_s: 15.0,
-            random_initial_episode_length: true,
-            velocity_scale_mps: default_velocity_scale(),
-            spawn_speed_mps: 0.0,
-            stage1_fraction: 0.0,
-            stage2_fraction: 0.0,
-            replay_fraction: 0.0,
-            racing_line_fraction: 0.0,
-            fold_mirror: false,
         }
     }
 }

@@ -18,7 +18,6 @@ pub(super) fn validate(c: &TrainConfig) -> Result<(), ConfigError> {
             return bad("guard.envs and guard.steps must be positive");
         }
     }
-    env_ranges(c)?;
     if let Some(d) = &c.pass_decay {
         if !(d.final_weight >= 0.0 && d.final_weight.is_finite())
             || d.from_iteration >= d.to_iteration
@@ -53,7 +52,7 @@ fn run(c: &TrainConfig) -> Result<(), ConfigError> {
         if !c.run.keep_best {
             return bad("run.select ranks the candidates of run.keep_best; set keep_best = true");
         }
-        if c.race.is_some() {
+        if c.env.race.is_some() {
             return bad("run.select is for time trials; a race ranks its run.eval_races races");
         }
         if !matches!(s.spawn.as_str(), "along-track" | "stage2") {
@@ -74,25 +73,11 @@ fn run(c: &TrainConfig) -> Result<(), ConfigError> {
     Ok(())
 }
 
-/// The preset, the spawn, and the row against the race section (row A races nobody, B-G
-/// race; row D is the sparse competition reward).
+/// The row against the race section (row A races nobody, B-G race; row D is the sparse
+/// competition reward), then the environment's own checks ([`sitl::env::EnvConfig::validate`]:
+/// `[env]`, `[reward]` and `[race]`).
 fn env_and_race(c: &TrainConfig) -> Result<(), ConfigError> {
-    if sitl::dynamics::Preset::by_name(&c.env.preset).is_none() {
-        return bad(format!(
-            "env.preset '{}' (paper, nominal, realistic)",
-            c.env.preset
-        ));
-    }
-    let race = c.race.is_some();
-    match (c.env.spawn.as_str(), race) {
-        ("stage1" | "along-track", false) | ("stage2", true) => {}
-        (s, false) => return bad(format!("env.spawn '{s}' (stage1, along-track)")),
-        (s, true) => {
-            return bad(format!(
-                "env.spawn '{s}': a [race] starts at the paper's stage-2 spawn, write \"stage2\""
-            ));
-        }
-    }
+    let race = c.env.race.is_some();
     if (c.run.row == 'A') == race {
         return bad(format!(
             "run.row '{}' {}",
@@ -104,13 +89,7 @@ fn env_and_race(c: &TrainConfig) -> Result<(), ConfigError> {
             }
         ));
     }
-    if let Some(r) = &c.race {
-        if r.opponent.is_empty() {
-            return bad("race.opponent must name a blob");
-        }
-        if !(r.competition_weight.is_finite() && r.competition_weight >= 0.0) {
-            return bad("race.competition_weight must be finite and >= 0");
-        }
+    if let Some(r) = &c.env.race {
         let sparse = r.competition == Competition::Sparse;
         if (c.run.row == 'D') != sparse {
             return bad(format!(
@@ -120,10 +99,12 @@ fn env_and_race(c: &TrainConfig) -> Result<(), ConfigError> {
             ));
         }
     }
-    if !(c.env.velocity_scale_mps.is_finite() && c.env.velocity_scale_mps > 0.0) {
-        return bad("env.velocity_scale_mps must be positive");
-    }
-    Ok(())
+    c.env_config(c.run.seed).validate().map_err(|e| {
+        // The [env] table's own fields are written `env.NAME` in a config; `reward.*` and
+        // `race.*` are sections of their own.
+        let section = if e.field.contains('.') { "" } else { "env." };
+        ConfigError::Invalid(format!("{section}{e}"))
+    })
 }
 
 /// The warm start and every refine stage.
@@ -153,26 +134,6 @@ fn warm_start(c: &TrainConfig) -> Result<(), ConfigError> {
         if !(0.0..=1.0).contains(&w.teacher_share_start) {
             return bad("warm_start.teacher_share_start must be in [0, 1]");
         }
-    }
-    Ok(())
-}
-
-fn env_ranges(c: &TrainConfig) -> Result<(), ConfigError> {
-    for (name, share) in [
-        ("stage1_fraction", c.env.stage1_fraction),
-        ("replay_fraction", c.env.replay_fraction),
-        ("stage2_fraction", c.env.stage2_fraction),
-        ("racing_line_fraction", c.env.racing_line_fraction),
-    ] {
-        if !(0.0..=1.0).contains(&share) {
-            return bad(format!("env.{name} must be in [0, 1]"));
-        }
-    }
-    if !(0.0..=20.0).contains(&c.env.spawn_speed_mps) {
-        return bad("env.spawn_speed_mps must be in [0, 20]");
-    }
-    if c.env.num_envs == 0 || c.env.episode_s.is_nan() || c.env.episode_s <= 0.0 {
-        return bad("env.num_envs and env.episode_s must be positive");
     }
     Ok(())
 }

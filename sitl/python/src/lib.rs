@@ -21,28 +21,29 @@ use pyo3::exceptions::{PyFileNotFoundError, PyOSError, PyTypeError, PyValueError
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use rayon::prelude::*;
-use sitl::dynamics::Preset;
-use sitl::env::{Competition, EnvConfig, RaceConfig, RewardWeights, VecEnv};
-use sitl::referee::SpawnMode;
-
-/// The most envs one environment holds: a bound that keeps an absurd request a
-/// `ValueError` instead of an allocation failure, which would abort the interpreter.
-const MAX_ENVS: usize = 1 << 20;
+use sitl::env::{Competition, EnvConfig, EnvError, RaceConfig, RewardWeights, Task, VecEnv};
 
 /// Rows per rayon task in [`Policy::act`].
 const POLICY_CHUNK: usize = 16;
 
-/// The bytes of the blob at `path`, or `OSError` (`FileNotFoundError` when it is missing)
-/// naming the path.
+/// The bytes of the blob at `path` (at most `sitl::env::MAX_BLOB_BYTES`), or `OSError`
+/// (`FileNotFoundError` when it is missing) naming the path.
 fn read_blob(what: &str, path: &std::path::Path) -> PyResult<AlignedBytes> {
-    let shown = path.display();
-    match std::fs::read(path) {
-        Ok(raw) => Ok(AlignedBytes::new(&raw)),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(PyFileNotFoundError::new_err(
-            format!("{what} '{shown}': {e}"),
-        )),
-        Err(e) => Err(PyOSError::new_err(format!("{what} '{shown}': {e}"))),
-    }
+    sitl::env::read_blob(path).map_err(|e| {
+        let message = format!("{what} '{}': {}", path.display(), {
+            match &e {
+                EnvError::ReadOpponent { message, .. } => message.clone(),
+                other => other.to_string(),
+            }
+        });
+        match e {
+            EnvError::ReadOpponent {
+                kind: std::io::ErrorKind::NotFound,
+                ..
+            } => PyFileNotFoundError::new_err(message),
+            _ => PyOSError::new_err(message),
+        }
+    })
 }
 
 /// Refuses `arr` unless it is a float32 array whose shape matches `shape` (`None`: any
@@ -117,25 +118,10 @@ fn reward_weights_from(
                 )));
             }
         };
-        if !(value.is_finite() && value >= 0.0) {
-            return Err(PyValueError::new_err(format!(
-                "reward_weights: {name} {value}: expected a finite weight >= 0"
-            )));
-        }
+        // Its range is checked with the rest by `EnvConfig::validate` ("reward.NAME: ...").
         *slot = value;
     }
     Ok(w)
-}
-
-/// `value` when it is a share in [0, 1], else the `ValueError` naming `name`.
-fn share(name: &str, value: f32) -> PyResult<f32> {
-    if (0.0..=1.0).contains(&value) {
-        Ok(value)
-    } else {
-        Err(PyValueError::new_err(format!(
-            "{name} {value}: expected a share in [0, 1]"
-        )))
-    }
 }
 
 fn bools<'py>(py: Python<'py>, v: impl Iterator<Item = bool>) -> Bound<'py, PyArray1<bool>> {
@@ -144,7 +130,14 @@ fn bools<'py>(py: Python<'py>, v: impl Iterator<Item = bool>) -> Bound<'py, PyAr
 
 impl RustVecEnv {
     fn build(config: EnvConfig) -> PyResult<VecEnv> {
-        VecEnv::new(config).map_err(|e| PyValueError::new_err(e.to_string()))
+        VecEnv::new(config).map_err(|e| match &e {
+            EnvError::ReadOpponent {
+                kind: std::io::ErrorKind::NotFound,
+                ..
+            } => PyFileNotFoundError::new_err(e.to_string()),
+            EnvError::ReadOpponent { .. } => PyOSError::new_err(e.to_string()),
+            _ => PyValueError::new_err(e.to_string()),
+        })
     }
 
     /// `actions` as a contiguous `num_envs × 4` vector, or the exception.
@@ -168,8 +161,9 @@ impl RustVecEnv {
 
 #[pymethods]
 impl RustVecEnv {
-    /// Builds the environments; every argument is required (the defaults live in
-    /// `overtake.make_vec_env`).
+    /// Builds the environments: every argument is required (the defaults live in
+    /// `overtake.make_vec_env`) and lands in `sitl::env::EnvConfig`, whose `validate` names
+    /// the field that is out of range.
     #[new]
     #[pyo3(signature = (*, task, num_envs, preset, seed, spawn, episode_s,
         random_initial_episode_length, opponent, competition, competition_weight, row,
@@ -197,123 +191,83 @@ impl RustVecEnv {
         stage2_fraction: f32,
         fold_mirror: bool,
     ) -> PyResult<Self> {
-        let race = match task {
-            "time_trial" => false,
-            "race" => true,
-            _ => {
-                return Err(PyValueError::new_err(format!(
-                    "task '{task}': expected 'time_trial' or 'race'"
-                )));
-            }
-        };
-        let num_envs = usize::try_from(num_envs)
-            .ok()
-            .filter(|n| (1..=MAX_ENVS).contains(n))
-            .ok_or_else(|| {
-                PyValueError::new_err(format!(
-                    "num_envs {num_envs}: expected 1 to {MAX_ENVS} (memory is allocated up front)"
-                ))
-            })?;
-        let preset = Preset::by_name(preset).ok_or_else(|| {
-            PyValueError::new_err(format!(
-                "preset '{preset}': expected 'paper', 'nominal' or 'realistic'"
-            ))
-        })?;
-        let spawn = match SpawnMode::by_name(spawn) {
-            Some(s @ (SpawnMode::AlongTrack | SpawnMode::Stage1)) => s,
-            _ => {
-                return Err(PyValueError::new_err(format!(
-                    "spawn '{spawn}': expected 'along-track' or 'stage1' (a race always spawns as the paper's stage 2)"
-                )));
-            }
-        };
-        if !(episode_s.is_finite() && episode_s > 0.0) {
-            return Err(PyValueError::new_err(format!(
-                "episode_s {episode_s}: expected a positive number of seconds"
-            )));
-        }
-        if !(velocity_scale_mps.is_finite() && velocity_scale_mps > 0.0) {
-            return Err(PyValueError::new_err(format!(
-                "velocity_scale_mps {velocity_scale_mps}: expected a positive speed"
-            )));
-        }
-        if !(spawn_speed_mps.is_finite() && spawn_speed_mps >= 0.0) {
-            return Err(PyValueError::new_err(format!(
-                "spawn_speed_mps {spawn_speed_mps}: expected a speed >= 0"
-            )));
-        }
-        for (name, value) in [
-            ("stage1_fraction", stage1_fraction),
-            ("stage2_fraction", stage2_fraction),
-            ("replay_fraction", replay_fraction),
-            ("racing_line_fraction", racing_line_fraction),
-        ] {
-            share(name, value)?;
-        }
-        let reward = reward_weights_from(reward_weights.unwrap_or_default())?;
+        let value_error = |e: String| PyValueError::new_err(e);
+        let task: Task = task.parse().map_err(value_error)?;
         let row = match row {
-            None if race => TableRow::G,
+            None if task == Task::Race => TableRow::G,
             None => TableRow::A,
             Some(c) => TableRow::from_letter(c).ok_or_else(|| {
                 PyValueError::new_err(format!("row '{c}': Table 1 has rows A to G"))
             })?,
         };
-        let layout = row.observation_layout();
-        if layout.needs_opponent() != race {
-            return Err(PyValueError::new_err(format!(
-                "row {}: a {task} needs a row that observes {}",
-                row.letter(),
-                if race {
-                    "the opponent (B to G)"
-                } else {
-                    "no opponent (A)"
-                }
-            )));
-        }
-        let mut observation = ObservationSpec::paper(layout).with_fold(fold_mirror);
-        observation.velocity_scale_mps = velocity_scale_mps;
-        let race = if race {
-            let path = opponent.ok_or_else(|| {
-                PyValueError::new_err("a race needs an opponent: the path of a time-trial blob")
-            })?;
-            let competition = Competition::by_name(competition).ok_or_else(|| {
-                PyValueError::new_err(format!(
-                    "competition '{competition}': expected 'dense', 'sparse' or 'lead'"
-                ))
-            })?;
-            Some(RaceConfig {
-                opponent: read_blob("opponent", &path)?,
-                competition,
+        let race = match (task, opponent) {
+            (Task::Race, Some(path)) => Some(RaceConfig {
+                opponent: path,
+                competition: Competition::by_name(competition).ok_or_else(|| {
+                    PyValueError::new_err(format!(
+                        "competition '{competition}': expected 'dense', 'sparse' or 'lead'"
+                    ))
+                })?,
                 competition_weight,
-            })
-        } else {
-            if opponent.is_some() {
+            }),
+            (Task::Race, None) => {
+                return Err(PyValueError::new_err(
+                    "a race needs an opponent: the path of a time-trial blob",
+                ));
+            }
+            (Task::TimeTrial, Some(_)) => {
                 return Err(PyValueError::new_err(
                     "a time trial has no opponent: pass task='race'",
                 ));
             }
-            None
+            (Task::TimeTrial, None) => None,
         };
         let config = EnvConfig {
-            num_envs,
-            preset,
-            spawn,
+            // An absurd count is refused by `validate` (it names the bound), not cast.
+            num_envs: usize::try_from(num_envs).unwrap_or(0),
+            preset: preset.parse().map_err(value_error)?,
+            spawn: spawn.parse().map_err(value_error)?,
+            episode_s,
+            random_initial_episode_length,
+            velocity_scale_mps,
             spawn_speed_mps,
             stage1_fraction,
             stage2_fraction,
             replay_fraction,
             racing_line_fraction,
-            episode_s,
-            random_initial_episode_length,
-            reward,
-            observation,
-            seed,
+            fold_mirror,
+            layout: row.observation_layout(),
+            reward: reward_weights_from(reward_weights.unwrap_or_default())?,
             race,
+            seed,
         };
+        if let Err(e) = config.validate() {
+            return Err(match e.field {
+                "num_envs" => PyValueError::new_err(format!("num_envs {num_envs}: {}", e.problem)),
+                "layout" => PyValueError::new_err(format!("row {}: {}", row.letter(), e.problem)),
+                _ => PyValueError::new_err(e.to_string()),
+            });
+        }
         Ok(Self {
             env: Self::build(config.clone())?,
             config,
         })
+    }
+
+    /// Raises `ValueError` when `policy` observes otherwise than these envs (another
+    /// layout, velocity scale or fold: flown here it would see observations it was not
+    /// trained on), naming every difference.
+    fn check_policy(&self, policy: &Policy) -> PyResult<()> {
+        self.config
+            .check_policy(&policy.spec)
+            .map_err(|e| PyValueError::new_err(e.problem))
+    }
+
+    /// The environment's `[env]` settings as JSON (host-trainer's `[env]` table, the keys
+    /// of `overtake.env_defaults`).
+    #[getter]
+    fn env_json(&self) -> PyResult<String> {
+        serde_json::to_string(&self.config).map_err(|e| PyValueError::new_err(e.to_string()))
     }
 
     /// Number of envs.
@@ -374,9 +328,9 @@ impl RustVecEnv {
     }
 
     /// What happened since the last call, summed over envs, and reset: `steps`,
-    /// `gates_passed`, `crashes`, `timeouts`, `opponent_crashes` (int) and each reward
-    /// term's sum (float, the names of `reward_terms`). Cheap: for a learner's logs without
-    /// `step_info` every step.
+    /// `gates_passed`, `crashes`, `timeouts`, `opponent_crashes`, `nonfinite_actions` (int)
+    /// and each reward term's sum (float, the names of `reward_terms`). Cheap: for a
+    /// learner's logs without `step_info` every step.
     fn take_stats<'py>(&mut self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
         let s = self.env.take_stats();
         let d = PyDict::new(py);
@@ -385,6 +339,7 @@ impl RustVecEnv {
         d.set_item("crashes", s.crashes)?;
         d.set_item("timeouts", s.timeouts)?;
         d.set_item("opponent_crashes", s.opponent_crashes)?;
+        d.set_item("nonfinite_actions", s.nonfinite_actions)?;
         let t = &s.terms;
         for (name, v) in [
             ("progress", t.progress),
@@ -425,9 +380,15 @@ impl RustVecEnv {
         &mut self,
         reward_weights: std::collections::HashMap<String, f32>,
     ) -> PyResult<()> {
-        let w = reward_weights_from(reward_weights)?;
-        self.env.set_reward_weights(w);
-        self.config.reward = w;
+        let config = EnvConfig {
+            reward: reward_weights_from(reward_weights)?,
+            ..self.config.clone()
+        };
+        config
+            .validate()
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
+        self.env.set_reward_weights(config.reward);
+        self.config = config;
         Ok(())
     }
 
@@ -726,9 +687,33 @@ impl Policy {
     }
 }
 
+/// The shipped pipeline's environment for `task` as JSON: `{"env": [env] table, "reward":
+/// weights, "competition", "competition_weight"}`, `sitl::env::EnvConfig::stage1` for a
+/// time trial (host-trainer/configs/stage1.toml) and `EnvConfig::stage2` for a race: the
+/// defaults of `overtake.make_vec_env`.
+#[pyfunction]
+fn shipped_env_json(task: &str) -> PyResult<String> {
+    let task: Task = task.parse().map_err(PyValueError::new_err)?;
+    let config = match task {
+        Task::TimeTrial => EnvConfig::stage1(1),
+        Task::Race => EnvConfig::stage2(1, ""),
+    };
+    let (competition, weight) = config.race.as_ref().map_or((Competition::Dense, 0.5), |r| {
+        (r.competition, r.competition_weight)
+    });
+    let json = serde_json::json!({
+        "env": config,
+        "reward": config.reward,
+        "competition": competition,
+        "competition_weight": weight,
+    });
+    Ok(json.to_string())
+}
+
 /// The compiled part of the `overtake` package.
 #[pymodule]
 fn _overtake(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(shipped_env_json, m)?)?;
     m.add_class::<RustVecEnv>()?;
     m.add_class::<Policy>()?;
     m.add("ACTION_DIM", ACTION_DIM)?;

@@ -143,7 +143,9 @@ def test_same_step_autoreset_and_final_observations():
     """A fall from the stage-1 start: the crash step terminates, its returned observation is
     already the respawn's (the start), and infos carry the crashed state's observation in
     Gymnasium's same-step `final_obs`; a hover times out as a truncation."""
-    env = overtake.make_vec_env(num_envs=2, spawn="stage1", episode_s=0.5)
+    env = overtake.make_vec_env(
+        num_envs=2, spawn="stage1", episode_s=0.5, random_initial_episode_length=False
+    )
     start, _ = env.reset(seed=0)
     hover = 0.519
     a = np.array([[-1.0] * 4, [hover] * 4], np.float32)
@@ -214,7 +216,7 @@ def test_reward_weights_set_between_steps_take_effect_and_survive_a_reset():
     assert fall(env) == pytest.approx(-DT * 1.0)  # fall() resets with a seed first
     with pytest.raises(ValueError, match="unknown term 'crsh'"):
         env._env.set_reward_weights({"crsh": 2.0})
-    with pytest.raises(ValueError, match="crash -1"):
+    with pytest.raises(ValueError, match="reward.crash: -1"):
         env._env.set_reward_weights({"crash": -1.0})
     assert env._env.reward_weights()["crash"] == pytest.approx(1.0)
 
@@ -223,7 +225,7 @@ def test_fold_mirror_folds_the_mirrored_half_only():
     """With fold_mirror the envs flying to the mirrored half observe their mirror image
     (host-trainer's env.fold_mirror): from the same spawns, some rows differ from the plain
     env's and the others are equal, and so they stay under the same (symmetric) actions."""
-    plain = overtake.make_vec_env(num_envs=64, seed=3)
+    plain = overtake.make_vec_env(num_envs=64, seed=3, fold_mirror=False)
     folded = overtake.make_vec_env(num_envs=64, seed=3, fold_mirror=True)
     p, _ = plain.reset(seed=3)
     f, _ = folded.reset(seed=3)
@@ -240,7 +242,7 @@ def test_reward_terms_add_up_and_match_numpy():
     """The reward is the terms' sum; the command and smoothness terms recomputed in numpy
     from the clipped actions (a swapped or mislabelled term fails here)."""
     n = 64
-    env = overtake.make_vec_env(num_envs=n, seed=2)
+    env = overtake.make_vec_env(num_envs=n, seed=2, fold_mirror=False)
     env.reset(seed=2)
     rng = np.random.default_rng(3)
     prev = np.zeros((n, 4))
@@ -266,12 +268,14 @@ def test_non_finite_actions_are_zero():
     good = np.array([[0, 0, 0, 0.3]] * 3, np.float32)
     for x, y in zip(a.step(bad)[:4], b.step(good)[:4]):
         assert np.array_equal(x, y)
+    assert a.take_stats()["nonfinite_actions"] == 9
+    assert b.take_stats()["nonfinite_actions"] == 0
 
 
 def test_race_events():
     """A hovering ego: the opponent flies off, and any episode end is the opponent's crash
     (a truncation), never the ego's; the competition term is paid."""
-    env = make("race", num_envs=16, seed=11, competition="lead")
+    env = make("race", num_envs=16, seed=11, competition="lead", random_initial_episode_length=False)
     obs, _ = env.reset(seed=11)
     hover = np.full((16, 4), 0.519, np.float32)
     for _ in range(100):
@@ -286,18 +290,20 @@ def test_race_events():
     [
         ({"task": "sprint"}, ValueError, "task 'sprint'"),
         ({"preset": "fast"}, ValueError, "preset 'fast'"),
-        ({"spawn": "stage2"}, ValueError, "spawn 'stage2'"),
+        ({"spawn": "stage3"}, ValueError, "spawn 'stage3'"),
+        ({"task": "race", "opponent": str(OPPONENT), "spawn": "along-track"}, ValueError, "spawn: 'along-track'"),
+        ({"velocity_scale_mps": 0.0}, ValueError, "velocity_scale_mps: 0"),
         ({"num_envs": 0}, ValueError, "num_envs"),
         ({"num_envs": -3}, ValueError, "num_envs"),
         ({"num_envs": 10**12}, ValueError, "num_envs"),
         ({"episode_s": float("nan")}, ValueError, "episode_s"),
         ({"row": "G"}, ValueError, "row G"),
         ({"row": "Z"}, ValueError, "row 'Z'"),
-        ({"replay_fraction": 1.5}, ValueError, "replay_fraction 1.5"),
-        ({"racing_line_fraction": -0.1}, ValueError, "racing_line_fraction -0.1"),
+        ({"replay_fraction": 1.5}, ValueError, "replay_fraction: 1.5"),
+        ({"racing_line_fraction": -0.1}, ValueError, "racing_line_fraction: -0.1"),
         ({"reward_weights": {"crsh": 1.0}}, ValueError, "unknown term 'crsh'"),
-        ({"reward_weights": {"crash": -1.0}}, ValueError, "crash -1"),
-        ({"reward_weights": {"pass": float("inf")}}, ValueError, "pass inf"),
+        ({"reward_weights": {"crash": -1.0}}, ValueError, "reward.crash: -1"),
+        ({"reward_weights": {"pass": float("inf")}}, ValueError, "reward.pass: inf"),
         ({"opponent": str(OPPONENT)}, ValueError, "no opponent"),
         ({"task": "race"}, ValueError, "needs an opponent"),
         ({"task": "race", "opponent": str(OPPONENT), "competition": "x"}, ValueError, "competition 'x'"),
@@ -315,7 +321,7 @@ def test_a_corrupt_opponent_is_refused(tmp_path):
     raw[-1] ^= 0x40
     bad = tmp_path / "bad.blob"
     bad.write_bytes(bytes(raw))
-    with pytest.raises(ValueError, match="opponent blob"):
+    with pytest.raises(ValueError, match="opponent '.*bad.blob': blob CRC"):
         overtake.make_vec_env(task="race", opponent=bad)
     with pytest.raises(OSError):
         overtake.make_vec_env(task="race", opponent=tmp_path)
@@ -351,7 +357,9 @@ def test_strided_actions_are_read_in_logical_order():
 def test_gymnasium_wrappers_see_the_episodes():
     """Gymnasium's own episode statistics over this env: hovering envs of 0.5 s episodes
     (25 steps) all end at step 25 with the summed reward; action wrappers apply."""
-    env = overtake.make_vec_env(num_envs=8, spawn="stage1", episode_s=0.5)
+    env = overtake.make_vec_env(
+        num_envs=8, spawn="stage1", episode_s=0.5, random_initial_episode_length=False
+    )
     stats = gym.wrappers.vector.RecordEpisodeStatistics(env)
     stats.reset(seed=0)
     total = np.zeros(8)
@@ -369,7 +377,7 @@ def test_gymnasium_wrappers_see_the_episodes():
 def test_episode_steps_are_read_and_written():
     """RSL-RL's init_at_random_ep_len writes the episode counters: an env one step short of
     the limit truncates at its next step, the others go on; a bad write changes nothing."""
-    env = make("time_trial", num_envs=3, spawn="stage1")
+    env = make("time_trial", num_envs=3, spawn="stage1", random_initial_episode_length=False)
     raw = env._env
     limit = raw.max_episode_steps
     hover = np.full((3, 4), 0.5, np.float32)
@@ -417,3 +425,48 @@ def test_racing_line_spawns_move_as_the_optimal_lap():
     still = overtake.make_vec_env(num_envs=32, seed=1, velocity_scale_mps=12.0)
     obs, _ = still.reset(seed=1)
     assert np.abs(obs[:, 7:10]).max() == 0.0  # along the track, at rest
+
+
+def test_defaults_are_the_shipped_environment():
+    """make_vec_env's defaults are the shipped pipeline's (``shipped_env``, which host-trainer's
+    tests hold equal to configs/stage1.toml and the row-G race), except the curriculum shares
+    (0) and the reward (the paper's), as its docstring says."""
+    for task in ("time_trial", "race"):
+        shipped = overtake.shipped_env(task)
+        env = make(task, num_envs=2)
+        settings = env.env_settings
+        curriculum = {"spawn_speed_mps", "stage1_fraction", "stage2_fraction", "replay_fraction"}
+        for key, value in shipped["env"].items():
+            if key == "num_envs":
+                continue
+            expected = 0.0 if key in curriculum else value
+            assert settings.get(key, 0.0) == expected, (task, key)
+        assert env._env.reward_weights()["crash"] == pytest.approx(5.0)
+    stage1 = overtake.shipped_env("time_trial")
+    assert stage1["env"]["velocity_scale_mps"] == 12.0 and stage1["env"]["fold_mirror"]
+    assert stage1["reward"]["crash"] == 1.0
+    # Every default round-trips: the settings the env reports build the same env.
+    env = overtake.make_vec_env(num_envs=4, seed=5)
+    again = overtake.make_vec_env(num_envs=4, seed=5, **{
+        k: v for k, v in env.env_settings.items() if k != "num_envs"
+    })
+    assert again.env_settings == env.env_settings
+    assert np.array_equal(env.reset(seed=5)[0], again.reset(seed=5)[0])
+
+
+def test_the_envs_a_policy_expects():
+    """``policy=`` builds the envs a blob observes; a contradicting setting is refused, and
+    ``check_policy`` refuses a policy in envs that observe otherwise."""
+    stage1 = overtake.Policy(POLICIES / "stage1.blob")
+    paper = overtake.make_vec_env(num_envs=2, velocity_scale_mps=3.0, fold_mirror=False)
+    with pytest.raises(ValueError, match="velocity_scale_mps.*fold_mirror"):
+        paper.check_policy(stage1)
+    built = overtake.make_vec_env(num_envs=2, policy=POLICIES / "stage1_imitation.blob")
+    assert not built.env_settings.get("fold_mirror", False)
+    built.check_policy(overtake.Policy(POLICIES / "stage1_imitation.blob"))
+    with pytest.raises(ValueError, match="contradicts the policy"):
+        overtake.make_vec_env(num_envs=2, fold_mirror=False, policy=stage1)
+    race = make("race", num_envs=2, policy=POLICIES / "stage2.blob")
+    race.check_policy(overtake.Policy(POLICIES / "stage2.blob"))
+    with pytest.raises(ValueError, match="layout"):
+        race.check_policy(stage1)

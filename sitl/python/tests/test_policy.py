@@ -19,9 +19,7 @@ def test_row_a_flies_the_time_trial():
     the binding would crash it."""
     policy = overtake.Policy(ROW_A)
     assert (policy.obs_dim, policy.recurrent, policy.control_period_ns) == (17, False, 20_000_000)
-    env = overtake.make_vec_env(
-        num_envs=16, spawn="stage1", velocity_scale_mps=policy.velocity_scale_mps
-    )
+    env = overtake.make_vec_env(num_envs=16, spawn="stage1", policy=policy)
     obs, _ = env.reset(seed=0)
     passed = crashed = 0
     for _ in range(600):
@@ -58,6 +56,15 @@ def test_a_folded_policy_flies_in_a_folded_env_only():
         outcome[fold] = (passed, crashed)
     # Measured: 9 gates each, no crash folded; 32 crashes (two each) plain.
     assert outcome[True][1] == 0 and outcome[True][0] >= 16 * 8, outcome
+    # make_vec_env's defaults are the shipped pipeline's observation: it flies there too.
+    env = overtake.make_vec_env(num_envs=16, spawn="stage1", random_initial_episode_length=False)
+    env.check_policy(policy)
+    obs, _ = env.reset(seed=0)
+    crashed = 0
+    for _ in range(600):
+        obs, _, term, _, _ = env.step(policy.act(obs))
+        crashed += term.sum()
+    assert crashed == 0
     assert outcome[False][1] > 0, outcome
 
 

@@ -17,15 +17,12 @@
 //!
 //! **The reward** of a step, term by term, is [`reward`]'s (docs/DESIGN.md "Rewards").
 
-use crate::dynamics::Preset;
 use crate::mirror::{Mirror, NoMirror};
-use crate::racing_line;
 use crate::referee::{SpawnMode, TrackProgress};
 use crate::world::{Drone, World};
 use firmware_core::Controller;
 use firmware_core::baseline::BaselineController;
 use firmware_core::blob::AlignedBytes;
-use firmware_core::math::Vec3;
 use firmware_core::mirror::{TrackMirror, observe_folded, unfold_action};
 use firmware_core::nn::ACTION_DIM;
 use firmware_core::observation::{Observation, ObservationError, ObservationSpec};
@@ -35,91 +32,85 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
+mod config;
 pub mod reward;
+mod spawn;
 
+pub use config::{
+    EnvConfig, EnvConfigError, MAX_ENVS, MAX_SPAWN_SPEED_MPS, PAPER_VELOCITY_SCALE_MPS, PresetName,
+    RaceConfig, Task,
+};
 pub use reward::{Competition, RewardTerms, RewardWeights, dense_competition};
 use reward::{Rewards, StepOutcome};
+use spawn::{PassReplay, SpawnRule, respawn};
 
 /// Envs per rayon task.
 const CHUNK: usize = 128;
 
-/// How the training environment is built.
-#[derive(Clone, Debug)]
-pub struct EnvConfig {
-    /// Number of parallel envs.
-    pub num_envs: usize,
-    /// Dynamics preset.
-    pub preset: Preset,
-    /// Where episodes start: the paper's fixed stage-1 spawn or along the track.
-    pub spawn: SpawnMode,
-    /// Highest initial speed (m/s) of a spawn, along its heading, drawn uniformly from
-    /// [0, this]; 0 spawns at rest as the paper's spawns do. Not part of the paper: a
-    /// drone already moving toward its gate sees progress reward from its first step (see
-    /// docs/TRAINING.md).
-    pub spawn_speed_mps: f32,
-    /// Share of respawns at the paper's fixed stage-1 spawn (at rest) whatever `spawn` is:
-    /// the start the referee evaluates stage 1 from. 0 for `spawn` alone.
-    pub stage1_fraction: f32,
-    /// Share of the time-trial respawns that are neither replayed nor stage-1 at the paper's
-    /// stage-2 spawn (at rest, 2 m or 1 m before a random gate and targeting it: the ego's or
-    /// the opponent's start of a race, each half the time). The stage-1 policy is stage 2's
-    /// opponent and starts there; a policy trained only on moving or stage-1 starts may not
-    /// lift off cleanly that close to a gate. 0 for none (the paper's stage 1).
-    pub stage2_fraction: f32,
-    /// Share of time-trial respawns that restart from a state the env itself flew through
-    /// right after one of its recent gate passes (its position, attitude, velocity, rates,
-    /// propeller speeds, next target and previous action), when it has one: Song et al.
-    /// 2023's "states from successful gate passes", so the policy trains where its own
-    /// flight takes it, at its own speeds. 0 for none (the paper's).
-    pub replay_fraction: f32,
-    /// Share of the time-trial respawns that are neither replayed nor stage-1 nor stage-2
-    /// spawns placed on the `paper` preset's time-optimal lap ([`crate::racing_line`]): a random node's
-    /// position, velocity, thrust-aligned attitude and target gate. Shows the policy the
-    /// fast line's states (corners, climbs, dives, 7-14 m/s); the line is the `paper`
-    /// preset's, so with another preset it is a slower line than that preset could fly. 0
-    /// for none (the paper's).
-    pub racing_line_fraction: f32,
-    /// Episode length (s) before a time-out. Paper stage 1: 15.
-    pub episode_s: f32,
-    /// Start every env at a random point of its first episode (RSL-RL's
-    /// `init_at_random_ep_len`), so that time-outs are spread over iterations.
-    pub random_initial_episode_length: bool,
-    /// Reward weights.
-    pub reward: RewardWeights,
-    /// The observation spec (layout 17; the scales are recorded in exported blobs). Paper:
-    /// `ObservationSpec::paper(TimeTrial17)`.
-    pub observation: ObservationSpec,
-    /// Seed of the spawns and initial lengths (env i uses stream i).
-    pub seed: u64,
-    /// Stage 2: race an opponent (`None`: a time trial). The spawn is then the paper's stage-2
-    /// spawn whatever `spawn`, `spawn_speed_mps` and `stage1_fraction` say.
-    pub race: Option<RaceConfig>,
-}
-
-/// The opponent and the competition reward of a stage-2 environment.
-#[derive(Clone, Debug)]
-pub struct RaceConfig {
-    /// The opponent's blob (a feed-forward or recurrent policy), validated when the
-    /// environment is built.
-    pub opponent: AlignedBytes,
-    /// Which competition reward.
-    pub competition: Competition,
-    /// Its weight λ_c (× dt like every term). Paper 0.5.
-    pub competition_weight: f32,
-}
-
-/// The environment could not be built: the opponent's blob cannot be flown, or the
-/// observation is folded ([`firmware_core::mirror`]) on a track without the symmetry.
+/// The environment could not be built.
 #[derive(Clone, Debug, PartialEq)]
-pub struct EnvError(pub String);
+pub enum EnvError {
+    /// A field of the config is out of its range.
+    Config(EnvConfigError),
+    /// The opponent's blob cannot be read.
+    ReadOpponent {
+        /// The blob's path.
+        path: std::path::PathBuf,
+        /// What the file system said (`NotFound` for a missing file).
+        kind: std::io::ErrorKind,
+        /// Its message.
+        message: String,
+    },
+    /// The opponent's blob does not validate or cannot be flown as stage 2's opponent, or
+    /// the observation is folded ([`firmware_core::mirror`]) on a track without the symmetry.
+    Unflyable(String),
+}
 
 impl core::fmt::Display for EnvError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        f.write_str(&self.0)
+        match self {
+            Self::Config(e) => e.fmt(f),
+            Self::ReadOpponent { path, message, .. } => {
+                write!(f, "opponent '{}': {message}", path.display())
+            }
+            Self::Unflyable(m) => f.write_str(m),
+        }
     }
 }
 
 impl std::error::Error for EnvError {}
+
+impl From<EnvConfigError> for EnvError {
+    fn from(e: EnvConfigError) -> Self {
+        Self::Config(e)
+    }
+}
+
+/// The largest blob an environment reads (bytes): well above row G in f32 (~1.3 MB), so a
+/// wrong path (`/dev/zero`) is refused instead of read without end.
+pub const MAX_BLOB_BYTES: u64 = 64 << 20;
+
+/// The bytes of the blob at `path`, at most [`MAX_BLOB_BYTES`].
+pub fn read_blob(path: &std::path::Path) -> Result<AlignedBytes, EnvError> {
+    use std::io::Read;
+    let refused = |kind: std::io::ErrorKind, message: String| EnvError::ReadOpponent {
+        path: path.to_path_buf(),
+        kind,
+        message,
+    };
+    let file = std::fs::File::open(path).map_err(|e| refused(e.kind(), e.to_string()))?;
+    let mut raw = Vec::new();
+    file.take(MAX_BLOB_BYTES + 1)
+        .read_to_end(&mut raw)
+        .map_err(|e| refused(e.kind(), e.to_string()))?;
+    if raw.len() as u64 > MAX_BLOB_BYTES {
+        return Err(refused(
+            std::io::ErrorKind::InvalidData,
+            format!("larger than {MAX_BLOB_BYTES} bytes: not a blob"),
+        ));
+    }
+    Ok(AlignedBytes::new(&raw))
+}
 
 /// `bytes` for the rest of the process, one copy per distinct blob: the opponent's
 /// [`Controller`] views its blob's weights in place (as in flash), so every env's controller
@@ -145,32 +136,6 @@ struct Race {
     weight: f32,
 }
 
-impl EnvConfig {
-    /// `num_envs` envs with the paper's settings (preset, the paper's reward, observation spec,
-    /// 15 s episodes), spawned along the track at rest with random initial episode lengths,
-    /// seeded with `seed`: the base that configs and tests adjust.
-    pub fn paper_along_track(num_envs: usize, seed: u64) -> Self {
-        Self {
-            num_envs,
-            preset: Preset::paper(),
-            spawn: SpawnMode::AlongTrack,
-            spawn_speed_mps: 0.0,
-            stage1_fraction: 0.0,
-            stage2_fraction: 0.0,
-            replay_fraction: 0.0,
-            racing_line_fraction: 0.0,
-            episode_s: 15.0,
-            random_initial_episode_length: true,
-            reward: RewardWeights::default(),
-            observation: ObservationSpec::paper(
-                firmware_core::observation::ObservationLayout::TimeTrial17,
-            ),
-            seed,
-            race: None,
-        }
-    }
-}
-
 /// Per-step statistics of the whole batch, drained by [`VecEnv::take_stats`].
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct EnvStats {
@@ -186,6 +151,9 @@ pub struct EnvStats {
     pub timeouts: u64,
     /// Stage 2: episodes ended by the opponent's crash alone (truncations).
     pub opponent_crashes: u64,
+    /// Action components that were NaN or infinite, flown as 0 ([`VecEnv::step`]): a
+    /// learner that counts any has diverged.
+    pub nonfinite_actions: u64,
 }
 
 impl EnvStats {
@@ -207,6 +175,7 @@ impl EnvStats {
         self.crashes += o.crashes;
         self.timeouts += o.timeouts;
         self.opponent_crashes += o.opponent_crashes;
+        self.nonfinite_actions += o.nonfinite_actions;
     }
 }
 
@@ -224,30 +193,6 @@ struct Slot {
     stats: EnvStats,
     /// The ego's states after its last gate passes (for `replay_fraction`).
     passes: PassReplay,
-}
-
-/// States after the last [`PassReplay::LEN`] gate passes of one env, oldest overwritten.
-#[derive(Clone, Debug, Default)]
-struct PassReplay {
-    states: [Option<(Drone, [f32; ACTION_DIM])>; PassReplay::LEN],
-    next: usize,
-}
-
-impl PassReplay {
-    const LEN: usize = 8;
-
-    fn record(&mut self, drone: Drone, previous_action: [f32; ACTION_DIM]) {
-        self.states[self.next] = Some((drone, previous_action));
-        self.next = (self.next + 1) % Self::LEN;
-    }
-
-    fn draw(&self, rng: &mut ChaCha8Rng) -> Option<(Drone, [f32; ACTION_DIM])> {
-        let filled = self.states.iter().filter(|s| s.is_some()).count();
-        if filled == 0 {
-            return None;
-        }
-        self.states[rng.random_range(0..filled)]
-    }
 }
 
 /// Many stage-1 or stage-2 worlds with their observations, rewards and episode ends.
@@ -298,8 +243,11 @@ pub const OBS_DIM: usize = 17;
 
 impl VecEnv {
     /// `config.num_envs` stage-1 envs, each spawned (at a random point of its first episode
-    /// when `random_initial_episode_length`); `config.race` is ignored. For a race use
-    /// [`VecEnv::new`].
+    /// when `random_initial_episode_length`); `config.race` is dropped. For tests and
+    /// benches, whose configs are written in code.
+    ///
+    /// # Panics
+    /// When `config` does not validate ([`EnvConfig::validate`]).
     pub fn time_trial(config: EnvConfig) -> Self {
         let config = EnvConfig {
             race: None,
@@ -307,36 +255,39 @@ impl VecEnv {
         };
         match Self::new(config) {
             Ok(env) => env,
-            // Without a race there is no blob to refuse.
-            Err(_) => unreachable!("a time trial has no opponent"),
+            Err(e) => panic!("VecEnv::time_trial: {e}"),
         }
     }
 
-    /// `config.num_envs` envs of a time trial or, with `config.race`, of a race; an opponent
-    /// blob that does not validate, or whose policy would need to see an opponent itself, is
-    /// refused here.
+    /// `config.num_envs` envs of a time trial or, with `config.race`, of a race. A config
+    /// that does not validate, an opponent blob that cannot be read or does not validate,
+    /// or whose policy would need to see an opponent itself, is refused here.
     pub fn new(config: EnvConfig) -> Result<Self, EnvError> {
+        config.validate()?;
         let rules = if config.race.is_some() {
             CrashRules::STAGE2
         } else {
             CrashRules::STAGE1
         };
-        let world = World::figure_eight(config.preset, rules);
+        let world = World::figure_eight(config.preset(), rules);
         let race = match &config.race {
             None => None,
             Some(r) => {
-                let blob = firmware_core::blob::Blob::parse(interned(&r.opponent).as_bytes())
-                    .map_err(|e| EnvError(format!("opponent blob: {e}")))?;
+                let bytes = read_blob(&r.opponent)?;
+                let unflyable = |e: &dyn core::fmt::Display| {
+                    EnvError::Unflyable(format!("opponent '{}': {e}", r.opponent.display()))
+                };
+                let blob = firmware_core::blob::Blob::parse(interned(&bytes).as_bytes())
+                    .map_err(|e| unflyable(&e))?;
                 let opponent = Controller::new(
                     &blob,
                     Track::figure_eight(),
                     blob.header().control_period_ns,
                 )
-                .map_err(|e| EnvError(format!("opponent blob: {e}")))?;
+                .map_err(|e| unflyable(&e))?;
                 if blob.header().observation.layout.needs_opponent() {
-                    return Err(EnvError(
-                        "opponent blob: the opponent's policy observes an opponent itself; stage 2 races a time-trial (17-value) policy"
-                            .into(),
+                    return Err(unflyable(
+                        &"the opponent's policy observes an opponent itself; stage 2 races a time-trial (17-value) policy",
                     ));
                 }
                 Some(Race {
@@ -349,13 +300,14 @@ impl VecEnv {
         let progress = TrackProgress::new(&world.track);
         let max_steps = ((config.episode_s / world.dt_s).round() as u32).max(1);
         let n = config.num_envs;
-        let obs_dim = config.observation.layout.dim();
+        let spec = config.observation_spec();
+        let obs_dim = spec.dim();
         let mirror = Mirror::of_track(&world.track);
-        let fold = match (&mirror, config.observation.is_folded()) {
+        let fold = match (&mirror, spec.is_folded()) {
             (_, false) => None,
             (Ok(m), true) => Some(*m.track_mirror()),
             (Err(e), true) => {
-                return Err(EnvError(format!(
+                return Err(EnvError::Unflyable(format!(
                     "the observation is folded by the track's mirror, but the track has {e}"
                 )));
             }
@@ -363,7 +315,7 @@ impl VecEnv {
         let mut env = Self {
             world,
             progress,
-            spec: config.observation,
+            spec,
             obs_dim,
             map: ActionMap::PAPER,
             race,
@@ -526,8 +478,10 @@ impl VecEnv {
     }
 
     /// One control step of every env: `actions` is `num_envs × 4`, row-major, unclipped (the
-    /// policy's samples); they are clipped to [−1, 1] (a NaN to 0) before the motors and the
-    /// reward. An action slice of the wrong length is refused and nothing moves.
+    /// policy's samples); they are clipped to [−1, 1] before the motors and the reward. A
+    /// non-finite component (NaN, ±inf) flies as 0, as the flight controller does, and is
+    /// counted in [`EnvStats::nonfinite_actions`]. An action slice of the wrong length is
+    /// refused and nothing moves.
     pub fn step(&mut self, actions: &[f32]) -> Result<(), ActionShapeError> {
         if actions.len() != self.slots.len() * ACTION_DIM {
             return Err(ActionShapeError {
@@ -562,8 +516,13 @@ impl VecEnv {
             .for_each(
                 |(((((((slots, obs), last), rew), done), timeout), record), act)| {
                     for (i, slot) in slots.iter_mut().enumerate() {
+                        let raw: [f32; ACTION_DIM] = core::array::from_fn(|k| {
+                            act.get(i * ACTION_DIM + k).copied().unwrap_or(0.0)
+                        });
+                        let nonfinite = raw.iter().filter(|v| !v.is_finite()).count();
+                        slot.stats.nonfinite_actions += nonfinite as u64;
                         let a: [f32; ACTION_DIM] = core::array::from_fn(|k| {
-                            let v = act.get(i * ACTION_DIM + k).copied().unwrap_or(0.0);
+                            let v = raw[k];
                             if v.is_finite() {
                                 v.clamp(-1.0, 1.0)
                             } else {
@@ -751,82 +710,6 @@ impl core::fmt::Display for EpisodeStepsError {
 }
 
 impl std::error::Error for EpisodeStepsError {}
-
-/// How an env respawns.
-#[derive(Clone, Copy, Debug)]
-struct SpawnRule {
-    mode: SpawnMode,
-    max_speed_mps: f32,
-    stage1_fraction: f32,
-    stage2_fraction: f32,
-    replay_fraction: f32,
-    racing_line_fraction: f32,
-    race: bool,
-}
-
-/// A new episode in `slot`: a spawn drawn from its generator. In a race, the paper's stage-2 spawn
-/// for both drones, the opponent's controller reset to their gate. In a time trial, the
-/// stage-1 spawn with probability `stage1_fraction`, otherwise `mode`'s, moving along its
-/// heading at a speed drawn from [0, `max_speed_mps`] when that is positive. The previous
-/// action zeroed. Otherwise, with probability `replay_fraction`, the state after one of the
-/// env's recent gate passes, with that step's previous action; and of the spawns that are
-/// neither replayed nor stage-1, a share `stage2_fraction` is the ego's or the opponent's
-/// stage-2 spawn (at rest), and of the rest a share `racing_line_fraction` is a random node
-/// of the time-optimal lap (moving as the optimum does there). A share of 0 draws no random
-/// number, so configs without it keep their streams.
-fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut Slot) {
-    if !rule.race && rule.replay_fraction > 0.0 && slot.rng.random::<f32>() < rule.replay_fraction {
-        if let Some((drone, previous_action)) = slot.passes.draw(&mut slot.rng) {
-            slot.drones[0] = drone;
-            slot.spawn_segment[0] = progress.spawn_segment(drone.progress.target);
-            slot.previous_action = previous_action;
-            slot.steps = 0;
-            return;
-        }
-    }
-    let line = progress.line();
-    let stage1 =
-        !rule.race && rule.stage1_fraction > 0.0 && slot.rng.random::<f32>() < rule.stage1_fraction;
-    let stage2 = !rule.race
-        && !stage1
-        && rule.stage2_fraction > 0.0
-        && slot.rng.random::<f32>() < rule.stage2_fraction;
-    let on_line = !rule.race
-        && !stage1
-        && !stage2
-        && rule.racing_line_fraction > 0.0
-        && slot.rng.random::<f32>() < rule.racing_line_fraction;
-    let mode = if stage1 { SpawnMode::Stage1 } else { rule.mode };
-    let [mut spawn, opponent] = if on_line {
-        let s = racing_line::paper_spawn(slot.rng.random_range(0..racing_line::paper_nodes()));
-        [s, s]
-    } else if stage2 {
-        let [ego, opponent] = SpawnMode::Stage2.draw(&world.track, line, &mut slot.rng);
-        let s = if slot.rng.random::<bool>() {
-            ego
-        } else {
-            opponent
-        };
-        [s, s]
-    } else {
-        mode.draw(&world.track, line, &mut slot.rng)
-    };
-    if rule.max_speed_mps > 0.0 && !stage1 && !stage2 && !on_line && !rule.race {
-        let speed = slot.rng.random_range(0.0..rule.max_speed_mps);
-        let forward = spawn.state.attitude.rotate(Vec3::new(1.0, 0.0, 0.0));
-        spawn.state.velocity_mps = forward.scale(speed);
-    }
-    slot.drones = [Drone::spawned(spawn), Drone::spawned(opponent)];
-    slot.spawn_segment = slot
-        .drones
-        .each_ref()
-        .map(|d| progress.spawn_segment(d.progress.target));
-    if let Some(c) = &mut slot.opponent {
-        c.reset(opponent.target_gate);
-    }
-    slot.previous_action = [0.0; ACTION_DIM];
-    slot.steps = 0;
-}
 
 /// Steps one env; returns what the step was made of.
 fn step_slot(

@@ -11,6 +11,7 @@ released); rewards, episode ends and observations are the Rust environment's, un
 
 from __future__ import annotations
 
+import json
 import os
 from typing import Any
 
@@ -19,8 +20,9 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 
 from overtake._overtake import ACTION_DIM, Policy, RustVecEnv
+from overtake._overtake import shipped_env_json as _shipped_env_json
 
-__all__ = ["ACTION_DIM", "OvertakeVecEnv", "Policy", "make_vec_env"]
+__all__ = ["ACTION_DIM", "OvertakeVecEnv", "Policy", "make_vec_env", "shipped_env"]
 
 #: The reward's terms, as ``infos`` carries them (each × dt, signed as it enters the reward).
 REWARD_TERMS = ("progress", "command", "smoothness", "pass", "crash", "competition")
@@ -28,39 +30,84 @@ REWARD_TERMS = ("progress", "command", "smoothness", "pass", "crash", "competiti
 EVENTS = ("gate_passed", "crashed", "timed_out", "opponent_crashed")
 
 
+def shipped_env(task: str = "time_trial") -> dict[str, Any]:
+    """The shipped pipeline's environment for ``task``, as :func:`make_vec_env`'s defaults.
+
+    Returns ``{"env": host-trainer's [env] table, "reward": the reward weights,
+    "competition": ..., "competition_weight": ...}``, from ``sitl::env::EnvConfig::stage1``
+    (``task="time_trial"``: ``host-trainer/configs/stage1.toml``, what
+    ``policies/stage1.blob`` was trained in) or ``EnvConfig::stage2`` (``task="race"``: the
+    paper's race with the shipped velocity scale). host-trainer's tests hold them equal to
+    the shipped configs.
+    """
+    return json.loads(_shipped_env_json(task))
+
+
+#: The training curriculum's settings, 0 (the paper's) unless passed (see make_vec_env).
+_CURRICULUM = (
+    "spawn_speed_mps",
+    "stage1_fraction",
+    "stage2_fraction",
+    "replay_fraction",
+    "racing_line_fraction",
+)
+
+#: A policy's observation layout by its observation size (rows C-G share the 30 values).
+_ROW_OF_DIM = {17: "A", 20: "B", 30: "G"}
+
+
 def make_vec_env(
     task: str = "time_trial",
     num_envs: int = 1024,
-    preset: str = "paper",
+    preset: str | None = None,
     seed: int = 0,
-    spawn: str = "along-track",
+    spawn: str | None = None,
     opponent: str | os.PathLike[str] | None = None,
-    episode_s: float = 15.0,
+    episode_s: float | None = None,
     *,
-    random_initial_episode_length: bool = False,
-    competition: str = "dense",
-    competition_weight: float = 0.5,
+    random_initial_episode_length: bool | None = None,
+    competition: str | None = None,
+    competition_weight: float | None = None,
     row: str | None = None,
-    velocity_scale_mps: float = 3.0,
-    spawn_speed_mps: float = 0.0,
-    stage1_fraction: float = 0.0,
-    stage2_fraction: float = 0.0,
-    replay_fraction: float = 0.0,
-    racing_line_fraction: float = 0.0,
+    velocity_scale_mps: float | None = None,
+    spawn_speed_mps: float | None = None,
+    stage1_fraction: float | None = None,
+    stage2_fraction: float | None = None,
+    replay_fraction: float | None = None,
+    racing_line_fraction: float | None = None,
     reward_weights: dict[str, float] | None = None,
-    fold_mirror: bool = False,
+    fold_mirror: bool | None = None,
+    policy: str | os.PathLike[str] | Policy | None = None,
 ) -> OvertakeVecEnv:
     """``num_envs`` auto-resetting environments of a time trial or a race.
 
+    **Defaults.** A setting left ``None`` takes the shipped pipeline's value for the task
+    (:func:`shipped_env`; ``host-trainer/configs/stage1.toml`` for a time trial, the paper's
+    race at the shipped velocity scale for a race): the ``paper`` preset, 15 s episodes with
+    random initial lengths, spawns along the track (a race: the stage-2 spawn), the velocity
+    observed at 12 m/s full scale and, in a time trial, the track folded by its mirror, so
+    that ``policies/stage1.blob`` flies here as it was trained. **Two groups are not the
+    shipped config's**, on purpose:
+
+    - the training curriculum (``spawn_speed_mps``, ``stage1_fraction``,
+      ``stage2_fraction``, ``replay_fraction``, ``racing_line_fraction``) defaults to 0, the
+      paper's: it changes where episodes start, which surprises anyone flying a policy
+      rather than training one;
+    - the reward weights default to the paper's (``crash`` 5; stage1.toml trains with 1).
+
+    To train as stage1.toml does, pass them: ``make_vec_env(**shipped_env()["env"],
+    reward_weights=shipped_env()["reward"])``. The paper's own stage 1 is
+    ``spawn="stage1"``, ``velocity_scale_mps=3``, ``fold_mirror=False``.
+
     Args:
         task: ``"time_trial"`` (stage 1, one drone) or ``"race"`` (stage 2: against
-            ``opponent``, spawned as the paper's stage 2 whatever ``spawn`` says).
-        num_envs: number of parallel environments.
+            ``opponent``, spawned as the paper's stage 2; ``spawn`` must be ``"stage2"``).
+        num_envs: number of parallel environments (1 to 2**20).
         preset: dynamics preset, ``"paper"``, ``"nominal"`` or ``"realistic"``.
         seed: seed of the spawns (env i draws from stream i); ``reset(seed=s)`` rebuilds
             the environments as if made with ``seed=s``.
-        spawn: time-trial spawns, ``"along-track"`` (a uniform point of the centreline) or
-            ``"stage1"`` (the paper's fixed start).
+        spawn: time-trial spawns, ``"along-track"`` (a uniform point of the centreline),
+            ``"stage1"`` (the paper's fixed start) or ``"stage2"`` (2 m before a random gate).
         opponent: race only: path of the opponent's flash blob (a time-trial, row-A policy).
         episode_s: episode length (s) before a time-out.
         random_initial_episode_length: start each env at a random point of its first
@@ -70,9 +117,9 @@ def make_vec_env(
         competition_weight: race only: its weight λ_c (paper 0.5).
         row: Table 1 row whose observation layout to use (``"A"``: 17 values, the default of
             a time trial; ``"B"``: 20; ``"C"``-``"G"``: 30, ``"G"`` the default of a race).
-        velocity_scale_mps: the own-velocity scale of the observation (paper 3 m/s; the
-            shipped policies' is ``Policy(path).velocity_scale_mps``).
-        spawn_speed_mps: time trial: highest initial speed along the spawn's heading.
+        velocity_scale_mps: the own-velocity scale of the observation (m/s; paper 3, the
+            shipped policies 12: ``Policy(path).velocity_scale_mps``).
+        spawn_speed_mps: time trial: highest initial speed along the spawn's heading (m/s).
         stage1_fraction: time trial: share of respawns at the paper's fixed start.
         stage2_fraction: time trial: share of the respawns neither replayed nor at the
             fixed start at the paper's stage-2 start (at rest, 2 m or 1 m before a random
@@ -80,8 +127,7 @@ def make_vec_env(
         replay_fraction: time trial: share of respawns from the state right after one of
             the env's own recent gate passes (when it has one; Song et al. 2023).
         racing_line_fraction: time trial: share of the other respawns (neither replayed nor
-            at the fixed start nor stage-2) on the ``paper`` preset's time-optimal lap, moving as the
-            optimum does there (``tools/min_lap_time.py``; only its states are used).
+            at the fixed start nor stage-2) on the ``paper`` preset's time-optimal lap.
         reward_weights: the reward's weights that differ from the paper's, by term name
             (``progress`` 0.5, ``command`` 0.0005, ``smoothness`` 0.0002, ``pass`` 1,
             ``crash`` 5; e.g. ``{"crash": 1.0}``, as ``[reward]`` in host-trainer's configs).
@@ -90,34 +136,72 @@ def make_vec_env(
             observes its mirror image, and its action is the image's, the motors renumbered
             back by the environment. A policy trained so must be exported folded
             (``host-trainer import-rslrl --fold-mirror``) for the controller to fly it.
+        policy: a blob path or :class:`Policy`: build the envs that policy observes (its
+            layout, velocity scale and fold). A setting passed as well that contradicts it
+            is a ``ValueError``.
 
     Raises:
-        ValueError: an unknown task, preset, spawn, row, competition or reward term, a bad number, a
-            race without an opponent, or an opponent blob that does not validate.
+        ValueError: an unknown task, preset, spawn, row, competition or reward term, a
+            setting out of its range (the message names it), a race without an opponent,
+            an opponent blob that does not validate, or a ``policy`` that contradicts a
+            setting.
         OSError: the opponent blob cannot be read (``FileNotFoundError`` when missing).
     """
+    shipped = shipped_env(task) if task in ("time_trial", "race") else shipped_env()
+    given = {
+        "preset": preset,
+        "spawn": spawn,
+        "episode_s": episode_s,
+        "random_initial_episode_length": random_initial_episode_length,
+        "velocity_scale_mps": velocity_scale_mps,
+        "spawn_speed_mps": spawn_speed_mps,
+        "stage1_fraction": stage1_fraction,
+        "stage2_fraction": stage2_fraction,
+        "replay_fraction": replay_fraction,
+        "racing_line_fraction": racing_line_fraction,
+        "fold_mirror": fold_mirror,
+    }
+    if policy is not None:
+        row = _observe_as(policy, given, row)
+    defaults = {k: shipped["env"].get(k, 0.0) for k in given}
+    defaults.update(dict.fromkeys(_CURRICULUM, 0.0))
+    defaults["fold_mirror"] = bool(shipped["env"].get("fold_mirror", False))
+    env_settings = {k: defaults[k] if v is None else v for k, v in given.items()}
     env = RustVecEnv(
         task=task,
         num_envs=num_envs,
-        preset=preset,
         seed=seed,
-        spawn=spawn,
-        episode_s=episode_s,
-        random_initial_episode_length=random_initial_episode_length,
         opponent=opponent,
-        competition=competition,
-        competition_weight=competition_weight,
+        competition=shipped["competition"] if competition is None else competition,
+        competition_weight=(
+            shipped["competition_weight"] if competition_weight is None else competition_weight
+        ),
         row=row,
-        velocity_scale_mps=velocity_scale_mps,
-        spawn_speed_mps=spawn_speed_mps,
-        stage1_fraction=stage1_fraction,
-        stage2_fraction=stage2_fraction,
-        replay_fraction=replay_fraction,
-        racing_line_fraction=racing_line_fraction,
         reward_weights=reward_weights,
-        fold_mirror=fold_mirror,
+        **env_settings,
     )
     return OvertakeVecEnv(env, task=task)
+
+
+def _observe_as(
+    policy: str | os.PathLike[str] | Policy, given: dict[str, Any], row: str | None
+) -> str:
+    """Sets ``given``'s observation settings to ``policy``'s (refusing a contradiction) and
+    returns the row whose layout it observes."""
+    p = policy if isinstance(policy, Policy) else Policy(os.fspath(policy))
+    own = {"velocity_scale_mps": p.velocity_scale_mps, "fold_mirror": p.fold_mirror}
+    for key, value in own.items():
+        if given[key] is not None and given[key] != value:
+            raise ValueError(
+                f"{key}={given[key]!r} contradicts the policy, which observes {key}={value!r}"
+            )
+        given[key] = value
+    policy_row = _ROW_OF_DIM.get(p.obs_dim)
+    if policy_row is None:
+        raise ValueError(f"policy: {p.obs_dim} observation values is no Table 1 layout")
+    if row is not None and {"A": 17, "B": 20}.get(row.upper(), 30) != p.obs_dim:
+        raise ValueError(f"row={row!r} contradicts the policy, which observes {p.obs_dim} values")
+    return row if row is not None else policy_row
 
 
 class OvertakeVecEnv(VectorEnv):
@@ -137,7 +221,11 @@ class OvertakeVecEnv(VectorEnv):
     **Actions**: float32 ``[num_envs, 4]`` (``TypeError`` for another dtype, ``ValueError``
     for another shape; nothing is stepped then). They are clipped to [-1, 1] before the motors
     and the reward, and a non-finite value (NaN, ±inf) becomes 0, as the flight controller
-    does: such actions are accepted, not refused.
+    does: such actions are accepted, not refused, and counted
+    (``take_stats()["nonfinite_actions"]``; a learner that sees any has diverged).
+
+    **Policies**: :meth:`check_policy` refuses a :class:`Policy` that observes otherwise
+    than these envs (``make_vec_env(policy=...)`` builds the envs a blob expects).
 
     **infos** of a step (arrays ``[num_envs]``, the step just taken, i.e. for a done env the
     episode's last step): the reward terms ``progress``, ``command``, ``smoothness``,
@@ -203,6 +291,23 @@ class OvertakeVecEnv(VectorEnv):
         info["final_obs"] = final_obs
         info["_final_obs"] = terminations | truncations
         return obs, rewards, terminations, truncations, info
+
+    def take_stats(self) -> dict[str, Any]:
+        """What happened since the last call, summed over envs, and reset: ``steps``,
+        ``gates_passed``, ``crashes``, ``timeouts``, ``opponent_crashes``,
+        ``nonfinite_actions`` (int) and each reward term's sum (float)."""
+        return self._env.take_stats()
+
+    @property
+    def env_settings(self) -> dict[str, Any]:
+        """The ``[env]`` settings these envs were built with (host-trainer's table)."""
+        return json.loads(self._env.env_json)
+
+    def check_policy(self, policy: Policy) -> None:
+        """Raises ``ValueError`` when ``policy`` observes otherwise than these envs (another
+        layout, velocity scale or fold), naming every difference: flown here it would see
+        observations it was not trained on."""
+        self._env.check_policy(policy)
 
     def rollout(self, actions: np.ndarray) -> tuple[np.ndarray, ...]:
         """``T`` steps in one Rust loop (float32 ``[T, num_envs, 4]``, C-contiguous):

@@ -26,8 +26,8 @@ except ImportError as e:  # pragma: no cover - exercised only without torch
         "pip install torch rsl-rl-lib==2.2.4"
     ) from e
 
-from overtake import REWARD_TERMS
-from overtake._overtake import ACTION_DIM, RustVecEnv
+from overtake import REWARD_TERMS, make_vec_env
+from overtake._overtake import ACTION_DIM
 
 __all__ = ["VecEnv", "actor_state_dict", "paper_train_cfg"]
 
@@ -52,36 +52,18 @@ class VecEnv(_RslRlVecEnv):
     """
 
     def __init__(self, *, device: str | torch.device = "cpu", **make_vec_env_kwargs: Any):
-        kwargs: dict[str, Any] = {
-            "task": "time_trial",
-            "num_envs": 4096,
-            "preset": "paper",
-            "seed": 0,
-            "spawn": "along-track",
-            "opponent": None,
-            "episode_s": 15.0,
-            "random_initial_episode_length": False,
-            "competition": "dense",
-            "competition_weight": 0.5,
-            "row": None,
-            "velocity_scale_mps": 3.0,
-            "spawn_speed_mps": 0.0,
-            "stage1_fraction": 0.0,
-            "stage2_fraction": 0.0,
-            "replay_fraction": 0.0,
-            "racing_line_fraction": 0.0,
-            "reward_weights": None,
-            "fold_mirror": False,
-        }
-        unknown = set(make_vec_env_kwargs) - set(kwargs)
-        if unknown:
-            raise TypeError(f"unknown environment arguments: {sorted(unknown)}")
+        kwargs: dict[str, Any] = {"task": "time_trial", "num_envs": 4096, "seed": 0}
         kwargs.update(make_vec_env_kwargs)
-        if kwargs["opponent"] is not None:
-            kwargs["opponent"] = os.fspath(kwargs["opponent"])
-        self._env = RustVecEnv(**kwargs)
-        #: The arguments the environments were built with (RSL-RL logs ``env.cfg``).
-        self.cfg: dict[str, Any] = kwargs
+        try:
+            gym_env = make_vec_env(**kwargs)
+        except TypeError as e:
+            raise TypeError(f"unknown environment arguments: {e}") from None
+        self._env = gym_env._env
+        #: The arguments the environments were built with, every ``[env]`` setting resolved
+        #: (RSL-RL logs ``env.cfg``).
+        self.cfg: dict[str, Any] = {
+            k: os.fspath(v) if k == "opponent" and v is not None else v for k, v in kwargs.items()
+        } | gym_env.env_settings
         self.device = torch.device(device)
         self.num_envs: int = self._env.num_envs
         self.num_actions: int = ACTION_DIM

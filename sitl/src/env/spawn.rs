@@ -1,0 +1,111 @@
+//! How an env's episodes start: the spawn rule of an [`super::EnvConfig`] and the states
+//! it replays (docs/DESIGN.md "Spawns").
+
+use super::Slot;
+use crate::racing_line;
+use crate::referee::{SpawnMode, TrackProgress};
+use crate::world::{Drone, World};
+use firmware_core::math::Vec3;
+use firmware_core::nn::ACTION_DIM;
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+
+/// States after the last [`PassReplay::LEN`] gate passes of one env, oldest overwritten.
+#[derive(Clone, Debug, Default)]
+pub(super) struct PassReplay {
+    states: [Option<(Drone, [f32; ACTION_DIM])>; PassReplay::LEN],
+    next: usize,
+}
+
+impl PassReplay {
+    const LEN: usize = 8;
+
+    pub(super) fn record(&mut self, drone: Drone, previous_action: [f32; ACTION_DIM]) {
+        self.states[self.next] = Some((drone, previous_action));
+        self.next = (self.next + 1) % Self::LEN;
+    }
+
+    pub(super) fn draw(&self, rng: &mut ChaCha8Rng) -> Option<(Drone, [f32; ACTION_DIM])> {
+        let filled = self.states.iter().filter(|s| s.is_some()).count();
+        if filled == 0 {
+            return None;
+        }
+        self.states[rng.random_range(0..filled)]
+    }
+}
+
+/// How an env respawns.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct SpawnRule {
+    pub(super) mode: SpawnMode,
+    pub(super) max_speed_mps: f32,
+    pub(super) stage1_fraction: f32,
+    pub(super) stage2_fraction: f32,
+    pub(super) replay_fraction: f32,
+    pub(super) racing_line_fraction: f32,
+    pub(super) race: bool,
+}
+
+/// A new episode in `slot`: a spawn drawn from its generator. In a race, the paper's stage-2 spawn
+/// for both drones, the opponent's controller reset to their gate. In a time trial, the
+/// stage-1 spawn with probability `stage1_fraction`, otherwise `mode`'s, moving along its
+/// heading at a speed drawn from [0, `max_speed_mps`] when that is positive. The previous
+/// action zeroed. Otherwise, with probability `replay_fraction`, the state after one of the
+/// env's recent gate passes, with that step's previous action; and of the spawns that are
+/// neither replayed nor stage-1, a share `stage2_fraction` is the ego's or the opponent's
+/// stage-2 spawn (at rest), and of the rest a share `racing_line_fraction` is a random node
+/// of the time-optimal lap (moving as the optimum does there). A share of 0 draws no random
+/// number, so configs without it keep their streams.
+pub(super) fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut Slot) {
+    if !rule.race && rule.replay_fraction > 0.0 && slot.rng.random::<f32>() < rule.replay_fraction {
+        if let Some((drone, previous_action)) = slot.passes.draw(&mut slot.rng) {
+            slot.drones[0] = drone;
+            slot.spawn_segment[0] = progress.spawn_segment(drone.progress.target);
+            slot.previous_action = previous_action;
+            slot.steps = 0;
+            return;
+        }
+    }
+    let line = progress.line();
+    let stage1 =
+        !rule.race && rule.stage1_fraction > 0.0 && slot.rng.random::<f32>() < rule.stage1_fraction;
+    let stage2 = !rule.race
+        && !stage1
+        && rule.stage2_fraction > 0.0
+        && slot.rng.random::<f32>() < rule.stage2_fraction;
+    let on_line = !rule.race
+        && !stage1
+        && !stage2
+        && rule.racing_line_fraction > 0.0
+        && slot.rng.random::<f32>() < rule.racing_line_fraction;
+    let mode = if stage1 { SpawnMode::Stage1 } else { rule.mode };
+    let [mut spawn, opponent] = if on_line {
+        let s = racing_line::paper_spawn(slot.rng.random_range(0..racing_line::paper_nodes()));
+        [s, s]
+    } else if stage2 {
+        let [ego, opponent] = SpawnMode::Stage2.draw(&world.track, line, &mut slot.rng);
+        let s = if slot.rng.random::<bool>() {
+            ego
+        } else {
+            opponent
+        };
+        [s, s]
+    } else {
+        mode.draw(&world.track, line, &mut slot.rng)
+    };
+    if rule.max_speed_mps > 0.0 && !stage1 && !stage2 && !on_line && !rule.race {
+        let speed = slot.rng.random_range(0.0..rule.max_speed_mps);
+        let forward = spawn.state.attitude.rotate(Vec3::new(1.0, 0.0, 0.0));
+        spawn.state.velocity_mps = forward.scale(speed);
+    }
+    slot.drones = [Drone::spawned(spawn), Drone::spawned(opponent)];
+    slot.spawn_segment = slot
+        .drones
+        .each_ref()
+        .map(|d| progress.spawn_segment(d.progress.target));
+    if let Some(c) = &mut slot.opponent {
+        c.reset(opponent.target_gate);
+    }
+    slot.previous_action = [0.0; ACTION_DIM];
+    slot.steps = 0;
+}
