@@ -473,43 +473,6 @@ def compare_report(trace_path, intervals):
             )
 
 
-def write_line(path, intervals, half_m):
-    """Writes the paper preset's time-optimal repeatable lap (point mass) as Rust source, the
-    states the environments can spawn on (sitl::racing_line, `racing_line_fraction`): per
-    node, the gate flown to, position (m), velocity (m/s) and specific thrust (m/s^2, world:
-    the acceleration plus gravity, the direction the drone's body z must point)."""
-    best, laps, tried = best_of(PAPER_TW, half_m, intervals, False, 1)
-    if best is None:
-        sys.exit("the optimal lap did not solve")
-    lap_s, segs, xs, us = best
-    n = len(GATES_M)
-    rows = []
-    for k in range(n):
-        for i in range(intervals):
-            j = k * intervals + i
-            values = ", ".join(f"{v:.5f}" for v in [*xs[:6, j], *us[:, j]])
-            rows.append(f"    ({(k + 1) % n}, [{values}]),")
-    with open(path, "w") as f:
-        f.write(
-            "//! The time-optimal repeatable lap of the `paper` preset as a point mass (T/W "
-            f"{PAPER_TW:.4f}), through\n//! the middle {2 * half_m:.1f} m of the 1.6 m openings "
-            f"(the full opening's optimum grazes the frames,\n//! which the strict gate test "
-            f"calls a crash): {lap_s:.3f} s, segments "
-            f"{', '.join(f'{t:.3f}' for t in segs)} s, {intervals} nodes a segment.\n"
-            "//! Written by `python3 tools/min_lap_time.py --write-line sitl/src/racing_line/paper.rs"
-            f"{'' if half_m == 0.7 else f' --line-half {half_m}'}`\n"
-            f"//! (the best of the {len(laps)} of {tried} initial guesses that solved); do not edit.\n\n"
-            "/// The lap's nodes in time order from g0: the gate flown to, then position (m),\n"
-            "/// velocity (m/s) and specific thrust (m/s², world frame).\n"
-            "#[rustfmt::skip]\n"
-            "#[allow(clippy::excessive_precision)] // five decimals, as written\n"
-            f"pub(super) const NODES: [(usize, [f32; 9]); {len(rows)}] = [\n"
-            + "\n".join(rows)
-            + "\n];\n"
-        )
-    print(f"{path}: {len(rows)} nodes of the {lap_s:.3f} s lap")
-
-
 def main():
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument(
@@ -551,24 +514,7 @@ def main():
         help="where a flown lap loses time: per segment, the laps in TRACE (sitl eval "
         "--trace) beside the optimal lap",
     )
-    p.add_argument(
-        "--write-line",
-        metavar="FILE",
-        help="write the paper preset's optimal lap as the environments' racing-line spawn "
-        "states (Rust source: sitl/src/racing_line/paper.rs)",
-    )
-    p.add_argument(
-        "--line-half",
-        type=float,
-        default=0.7,
-        help="with --write-line: the half-size (m) of the part of each opening the line "
-        "passes through (0.7: 0.1 m inside the frame, which the optimum through the full "
-        "0.8 would graze)",
-    )
     args = p.parse_args()
-    if args.write_line:
-        write_line(args.write_line, args.intervals, args.line_half)
-        return
     if args.compare:
         compare_report(args.compare, args.intervals)
         return

@@ -103,8 +103,6 @@ def parser() -> argparse.ArgumentParser:
                    help="share of the other respawns at the paper's stage-2 start (at rest before a gate)")
     p.add_argument("--replay-fraction", type=float, default=0.0,
                    help="share of respawns from an env's own recent post-pass states")
-    p.add_argument("--racing-line-fraction", type=float, default=0.0,
-                   help="share of the other respawns on the paper preset's time-optimal lap")
     p.add_argument("--reward-weight", action="append", default=[], metavar="TERM=W",
                    help="a reward weight other than the paper's, e.g. crash=1 (repeatable)")
     p.add_argument("--pass-decay", type=float, nargs=3, metavar=("FINAL", "FROM", "TO"),
@@ -243,7 +241,6 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
             stage1_fraction=args.stage1_fraction,
             stage2_fraction=args.stage2_fraction,
             replay_fraction=args.replay_fraction,
-            racing_line_fraction=args.racing_line_fraction,
         )
     weights = reward_overrides(args)
     if weights:

@@ -15,7 +15,7 @@
 //! noise for every actor), as PPO's objective sees it.
 //!
 //! `cargo run --release -p host-trainer --example gradient_snr -- runs/stage1_imitation [K] [LAMBDA]`
-//! (the run from `host-trainer train --config host-trainer/configs/stage1_imitation.toml
+//! (the run from `host-trainer train --config host-trainer/configs/experiments/stage1_imitation.toml
 //! --out runs/stage1_imitation`).
 
 use burn::optim::SgdConfig;

@@ -1,7 +1,7 @@
 //! How far a stage-2 student's actions are from its stage-1 teacher's on the student's own
 //! flight, by time since the spawn: the measurement that showed the recurrent students
-//! drifting past the length of their DAgger rounds (docs/TRAINING.md, "The LSTM student's
-//! horizon").
+//! drifting past the length of their DAgger rounds (docs/journal/stage2.md, "Why the row-G
+//! student fell short of its teacher: its horizon").
 //!
 //! usage: cargo run --release -p host-trainer --example imitation_error -- \
 //!            CONFIG.toml STUDENT.blob [STEPS] [EPISODE_S]

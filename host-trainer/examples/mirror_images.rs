@@ -4,8 +4,8 @@
 //! with the motors renumbered back (`sitl::mirror`), with the image's attitude quaternion as
 //! `Mirror::state` gives it and with its sign chosen so that w has the sign of the flown
 //! state's w. A symmetric policy has distance 0 on the images it was trained on; a large
-//! distance means the images are inputs the policy has not learned (docs/TRAINING.md "The
-//! faster half teaches the slower").
+//! distance means the images are inputs the policy has not learned (docs/journal/stage1.md
+//! "The faster half teaches the slower").
 //!
 //! `cargo run --release -p host-trainer --example mirror_images -- \
 //!    --config policies/stage1_rl/config.toml --blob policies/stage1_rl.blob`

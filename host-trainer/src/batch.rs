@@ -34,11 +34,6 @@ pub struct Batch {
     pub advantages: Vec<f32>,
     /// Recurrent networks: the windows (`None` for feed-forward ones).
     pub sequence: Option<Sequences>,
-    /// The mirror teacher's target means (`[ppo] mirror_teacher`, [`Rollout::mirror_targets`]),
-    /// laid out as `actions`; empty when the term is off.
-    pub mirror_targets: Vec<f32>,
-    /// 1 where a sample learns from its mirror image, else 0; empty when the term is off.
-    pub mirror_weights: Vec<f32>,
 }
 
 impl Batch {

@@ -94,7 +94,7 @@ impl From<TrainConfig> for TrainFile {
 }
 
 /// A line search on the measured return after each PPO update (not in the paper; see
-/// docs/TRAINING.md "Why PPO leaves the student"): the updated actor, and if it is worse
+/// docs/journal/stage1.md "Why PPO leaves the student"): the updated actor, and if it is worse
 /// the update scaled by 1/2 and 1/4, must reach at least the old actor's reward per step on
 /// one rollout with common random numbers (the same fresh seeds for environments and action
 /// noise for both). If none does, the actor stays as it was, its Adam state is reset and the
@@ -310,25 +310,12 @@ pub struct StdDecay {
     pub to_iteration: u32,
 }
 
-/// A falling KL target ([`PpoConfig::desired_kl_decay`]): `desired_kl` until
-/// `from_iteration`, then linearly to `final_kl` at `to_iteration`. Iterations are absolute,
-/// like [`StdDecay`]'s.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct KlDecay {
-    /// The KL target from `to_iteration` on.
-    pub final_kl: f64,
-    /// The last iteration at `desired_kl`.
-    pub from_iteration: u32,
-    /// The first iteration at `final_kl`.
-    pub to_iteration: u32,
-}
-
 /// A falling pass-reward weight ([`TrainConfig::pass_decay`], not in the paper): `reward.pass`
 /// until `from_iteration`, then linearly to `final_weight` at `to_iteration`. The pass reward
 /// `1 − ‖rel_gate‖` pays for crossing a gate near its centre, which helps a network find the
-/// gates early and costs lap time late (the fast line cuts the openings' edges; docs/TRAINING.md
-/// "One half, flown twice"). Iterations are absolute, like [`StdDecay`]'s.
+/// gates early and costs lap time late (the fast line cuts the openings' edges;
+/// docs/journal/stage1.md "The reward keeps the line at the gates' centres"). Iterations are
+/// absolute, like [`StdDecay`]'s.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PassDecay {
@@ -365,12 +352,6 @@ pub struct PpoConfig {
     pub learning_rate: f64,
     /// KL target of the adaptive learning rate (`None`: fixed rate). Paper: 0.01.
     pub desired_kl: Option<f64>,
-    /// The KL target lowered during the run: from `desired_kl` it falls linearly to
-    /// `final_kl` between two iterations, so the adaptive learning rate takes smaller steps
-    /// at the end (the annealed learning rate of PPO's paper, through RSL-RL's KL-adaptive
-    /// rate). Needs `desired_kl`. Paper: none. Default none (left out of the canonical TOML).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub desired_kl_decay: Option<KlDecay>,
     /// Gradient norm clip. Paper: 1.0.
     pub max_grad_norm: f32,
     /// Floor of the adaptive learning rate. Paper (RSL-RL): 1e-5. Default 1e-5. (Left out of
@@ -418,44 +399,6 @@ pub struct PpoConfig {
     /// hash.)
     #[serde(default, skip_serializing_if = "UpdateKind::is_default")]
     pub update: UpdateKind,
-    /// Train on every sample's mirror image as well (`sitl::mirror`: the figure-8 reflected
-    /// in x = 0 is itself, its halves swapped): the reflected observation with the
-    /// renumbered motor command, the sample's return and advantage (symmetry data
-    /// augmentation, as RSL-RL's `symmetry_cfg`). The batch doubles; the env-steps do not.
-    /// Feed-forward rows only. Paper: false. Default false (left out of the canonical TOML
-    /// at its default, as `min_learning_rate`).
-    #[serde(default, skip_serializing_if = "is_false")]
-    pub mirror_augmentation: bool,
-    /// The faster half of the figure-8 teaches the slower one (not in the paper; docs/TRAINING.md
-    /// "The faster half teaches the slower"): on every sample whose target gate is the mirror
-    /// image of one of `gates`, the actor's mean is also pulled toward the mean the policy
-    /// itself gives the sample's mirror image (`sitl::mirror`), its motors renumbered.
-    /// Feed-forward rows only. Default none.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub mirror_teacher: Option<MirrorTeacher>,
-}
-
-/// A policy's own flight on one half of a mirror-symmetric track as the target of its
-/// flight on the other half: a squared-error term on the actor's mean, added to PPO's loss,
-///
-/// `coef × (1/N) Σ_students ‖μ(o) − P μ_old(o′)‖²`
-///
-/// over a minibatch of N samples, where the students are the samples whose target gate's
-/// mirror is in `gates`, o′ is the sample's reflected observation (targeting that gate) and
-/// P renumbers the motors. The target comes from the policy of the rollout (the old policy)
-/// and carries no gradient. The samples still train on PPO's surrogate as well.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct MirrorTeacher {
-    /// The target gates whose flights teach: a sample targeting gate g learns from its
-    /// image when the mirror of g is one of these. On the figure-8 every policy measured
-    /// flies the segments to g0, g2 and g4 faster than their mirrors (to g3, g5, g1).
-    pub gates: Vec<usize>,
-    /// Weight of the squared error (per action component, action units).
-    pub coef: f32,
-    /// The first iteration with the term (0: from the start).
-    #[serde(default)]
-    pub from_iteration: u32,
 }
 
 /// Which implementation takes the PPO steps of the feed-forward networks.
@@ -563,30 +506,8 @@ impl PpoConfig {
     }
 }
 
-impl PpoConfig {
-    /// The KL target of the update after `iteration` iterations: `desired_kl`, lowered by
-    /// `desired_kl_decay` when there is one (exactly `desired_kl` before the decay starts).
-    pub fn desired_kl_at(&self, iteration: u32) -> Option<f64> {
-        let target = self.desired_kl?;
-        let Some(d) = &self.desired_kl_decay else {
-            return Some(target);
-        };
-        let t = f64::from(linear_fall(
-            0.0,
-            1.0,
-            d.from_iteration,
-            d.to_iteration,
-            iteration,
-        ));
-        if t == 0.0 {
-            return Some(target);
-        }
-        Some(target + (d.final_kl - target) * t)
-    }
-}
-
 /// `start` until iteration `from`, then linearly to `end` at iteration `to` and after (the
-/// σ ceiling's, the KL target's and the pass weight's schedules).
+/// σ ceiling's and the pass weight's schedules).
 fn linear_fall(start: f32, end: f32, from: u32, to: u32, iteration: u32) -> f32 {
     let span = to.saturating_sub(from).max(1) as f32;
     let t = (iteration.saturating_sub(from) as f32 / span).min(1.0);

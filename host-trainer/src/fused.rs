@@ -29,7 +29,7 @@
 use crate::batch::{Batch, LN_2PI};
 use crate::config::PpoConfig;
 use crate::model::{Actor, Critic, values};
-use crate::ppo::{UpdateStats, adapt_learning_rate};
+use crate::update::{UpdateStats, adapt_learning_rate};
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::tensor::{Tensor, TensorData};
 use firmware_core::nn::ACTION_DIM;
@@ -525,7 +525,6 @@ struct ActorStats {
     entropy: f64,
     kl: f64,
     clip_fraction: f64,
-    mirror_loss: f64,
 }
 
 /// The actor's pass: clipped surrogate, entropy bonus, KL before the step; gradients into
@@ -543,13 +542,6 @@ fn actor_pass(side: &mut Side, b: &Batch, idx: &[usize], p: &PpoConfig) -> Actor
     let mut surrogate = 0.0f64;
     let mut clipped_count = 0usize;
     let mut d_log_std = [0.0f64; ACTION_DIM];
-    // The mirror teacher: coef × (1/N) Σ w ‖μ − target‖², the target a constant.
-    let teacher = p
-        .mirror_teacher
-        .as_ref()
-        .filter(|_| !b.mirror_weights.is_empty())
-        .map(|t| 2.0 * t.coef * inv_n);
-    let (mut mirror_sq, mut students) = (0.0f64, 0.0f64);
     side.pass(b, idx, |rows, mean, d_mean| {
         for ((&i, mu), dmu) in rows
             .iter()
@@ -584,18 +576,6 @@ fn actor_pass(side: &mut Side, b: &Batch, idx: &[usize], p: &PpoConfig) -> Actor
                 dmu[k] = z[k] * inv_std[k] * d_lp;
                 d_log_std[k] += f64::from(d_lp * (z[k] * z[k] - 1.0));
             }
-            if let Some(scale) = teacher {
-                let w = b.mirror_weights[i];
-                if w != 0.0 {
-                    let t = &b.mirror_targets[i * ACTION_DIM..(i + 1) * ACTION_DIM];
-                    for k in 0..ACTION_DIM {
-                        let d = mu[k] - t[k];
-                        dmu[k] += scale * w * d;
-                        mirror_sq += f64::from(w * d * d);
-                    }
-                    students += f64::from(w);
-                }
-            }
         }
     });
     for (g, d) in side.grad[ls_at..].iter_mut().zip(d_log_std) {
@@ -607,11 +587,6 @@ fn actor_pass(side: &mut Side, b: &Batch, idx: &[usize], p: &PpoConfig) -> Actor
         entropy: f64::from(sum_log_std + 0.5 * (1.0 + LN_2PI) * ACTION_DIM as f32),
         kl: kl / n,
         clip_fraction: clipped_count as f64 / n,
-        mirror_loss: if students > 0.0 {
-            mirror_sq / students
-        } else {
-            0.0
-        },
     }
 }
 
@@ -804,7 +779,6 @@ impl FusedLearner {
             grad_norm: norm,
             learning_rate: lr,
             skipped: 0,
-            mirror_loss: a.mirror_loss,
         }
     }
 }

@@ -1,4 +1,5 @@
-//! The guard (`[guard]`, not in the paper; docs/TRAINING.md "Why PPO leaves the student"): a
+//! The guard (`[guard]`, not in the paper; docs/journal/stage1.md "Why PPO leaves the
+//! student"): a
 //! line search on the measured return after each PPO update. The updated actor, and if it
 //! is worse the update scaled by 1/2 and 1/4, must reach at least the old actor's reward per
 //! step on one test rollout with common random numbers (the same seeds for environments and
@@ -112,7 +113,8 @@ mod tests {
     /// stage1_finetune.toml with a small guard, and the shipped student as its actor.
     fn student_learner() -> (TrainConfig, Architecture, Learner) {
         let mut config =
-            TrainConfig::parse(include_str!("../configs/stage1_finetune.toml")).unwrap();
+            TrainConfig::parse(include_str!("../configs/experiments/stage1_finetune.toml"))
+                .unwrap();
         config.guard = Some(Guard {
             envs: 64,
             warmup_steps: 10,

@@ -9,7 +9,7 @@
 //! rounds through one collector (`collect_round`); they differ in how they fit.
 //!
 //! Why: with the paper's reward (docs/DESIGN.md "Rewards") at this machine's budget, PPO from a random actor learns to hover
-//! and then stays there (docs/TRAINING.md has the runs). A student that already flies the
+//! and then stays there (docs/journal/stage1.md has the runs). A student that already flies the
 //! track sees the progress reward from its first PPO iteration.
 
 use crate::config::{TrainConfig, WarmStart};

@@ -15,6 +15,7 @@
 //! | [`model`] | the feed-forward actor and critic (rows A-D) on `burn` |
 //! | [`recurrent`] | the LSTM actor and critic (rows E-G) with a fused cell |
 //! | [`fused`] | the feed-forward PPO minibatch step by hand: forward, loss, backward, clip, Adam |
+//! | [`update`] | what one PPO update reports, and the KL-adaptive learning rate both updates share |
 //! | [`grads`] | gradient norms, clipping and moving gradients between network copies |
 //! | [`guard`] | the optional line search of each update on the measured return |
 //! | [`imitation`] | DAgger: one round collector, the feed-forward and recurrent regressions |
@@ -48,4 +49,5 @@ pub mod rslrl;
 pub mod run_dir;
 pub mod setup;
 pub mod train;
+pub mod update;
 pub mod warm_start;

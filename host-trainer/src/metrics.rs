@@ -49,7 +49,7 @@ pub struct IterationMetrics {
     pub gates_per_s: f64,
     /// The update's statistics (flattened: `surrogate_loss`, `value_loss`, `entropy`, `kl`,
     /// `clip_fraction`, `grad_norm`, `learning_rate` after the update,
-    /// `skipped_minibatches`, `mirror_loss` with the mirror teacher).
+    /// `skipped_minibatches`).
     #[serde(flatten)]
     pub update: UpdateStats,
     /// Mean σ of the policy.

@@ -38,12 +38,12 @@ use crate::model::{Actor, Critic, values};
 use crate::nets::{PolicyNet, PpoNet};
 use crate::recurrent::{RecurrentActor, RecurrentCritic};
 use crate::rollout::Rollout;
+pub use crate::update::{UpdateStats, adapt_learning_rate};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::Device;
 use firmware_core::nn::ACTION_DIM;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
-use serde::{Deserialize, Serialize};
 
 /// The learner: actor, critic, their Adam states and the adaptive learning rate. The
 /// feed-forward networks by default; `Learner<RecurrentActor, RecurrentCritic>` is
@@ -73,10 +73,6 @@ pub struct Learner<A = Actor, C = Critic> {
     pub fused_optim: Option<FusedOptim>,
 }
 
-fn is_zero(v: &f64) -> bool {
-    *v == 0.0
-}
-
 /// Adam as PyTorch's defaults (β 0.9/0.999, ε 1e-8), which RSL-RL uses.
 pub fn adam() -> ModuleOptimizer {
     AdamConfig::new().with_epsilon(1e-8).init()
@@ -84,35 +80,6 @@ pub fn adam() -> ModuleOptimizer {
 
 /// Recurrent PPO's learner (rows E-G).
 pub type RecurrentLearner = Learner<RecurrentActor, RecurrentCritic>;
-
-/// Statistics of one update, averaged over its minibatches.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
-pub struct UpdateStats {
-    /// Clipped surrogate loss.
-    pub surrogate_loss: f64,
-    /// Clipped value loss (before its coefficient).
-    pub value_loss: f64,
-    /// Policy entropy (nats).
-    pub entropy: f64,
-    /// KL(π_old ‖ π) measured before each step.
-    pub kl: f64,
-    /// Fraction of samples whose ratio left [1 − ε, 1 + ε].
-    pub clip_fraction: f64,
-    /// Global gradient norm before clipping.
-    pub grad_norm: f64,
-    /// Learning rate after the update.
-    pub learning_rate: f64,
-    /// With `[ppo] mirror_teacher`: the mean squared distance, summed over the four action
-    /// components, between the actor's mean and its mirror teacher's target over the samples
-    /// that learn from their images, before each step. 0 when off. `mirror_loss` in
-    /// `metrics.jsonl` (left out when 0).
-    #[serde(default, skip_serializing_if = "is_zero")]
-    pub mirror_loss: f64,
-    /// Minibatches skipped because a loss or the gradient norm was not finite (the networks
-    /// are left as they were). `skipped_minibatches` in `metrics.jsonl`.
-    #[serde(rename = "skipped_minibatches", default)]
-    pub skipped: u32,
-}
 
 impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
     /// Either network carries a state: minibatches are whole env windows.
@@ -144,8 +111,6 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
     /// Turns a rollout into training samples: old log-probabilities, means and values from
     /// one batched forward pass without autodiff, time-outs bootstrapped with γ·V of the
     /// step's observation (RSL-RL), GAE returns, advantages normalised over the rollout.
-    /// A rollout with mirror images ([`Rollout::mirrored`], feed-forward networks) gives a
-    /// batch of twice its samples: the flown ones, then their images.
     ///
     /// Recurrent networks run over the window from the rollout's stored states; the batch's
     /// [`Sequences::critic_next`] is the critic's state for the next window.
@@ -153,23 +118,10 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
         let actor = self.actor.valid();
         let critic = self.critic.valid();
         let device = self.device.clone().without_autodiff();
-        // Symmetry augmentation: the mirror images follow the samples, with the sample's
-        // return, advantage and behaviour log-probability.
-        let mirrored = !Self::RECURRENT
-            && !r.mirror_obs.is_empty()
-            && r.mirror_obs.len() == r.obs.len()
-            && r.mirror_actions.len() == r.actions.len();
-        let both = |a: &[f32], b: &[f32]| {
-            if mirrored {
-                [a, b].concat()
-            } else {
-                a.to_vec()
-            }
-        };
         let mut batch = Batch {
             obs_dim: r.obs_dim,
-            obs: both(&r.obs, &r.mirror_obs),
-            actions: both(&r.actions, &r.mirror_actions),
+            obs: r.obs.clone(),
+            actions: r.actions.clone(),
             old_log_prob: Vec::new(),
             old_mean: Vec::new(),
             old_std: [1.0; ACTION_DIM],
@@ -177,8 +129,6 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             returns: Vec::new(),
             advantages: Vec::new(),
             sequence: Self::RECURRENT.then(|| Sequences::of(r)),
-            mirror_targets: Vec::new(),
-            mirror_weights: Vec::new(),
         };
         let (old_mean, old_values, last_values, critic_next) =
             match self.fused_outputs(&batch.obs, &r.last_obs, p) {
@@ -193,20 +143,13 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
         let std = actor.std();
         let old_std: [f32; ACTION_DIM] =
             core::array::from_fn(|k| std.get(k).copied().unwrap_or(1.0));
-        // An image's action was drawn by the reflected policy, with the probability the
-        // flown action had: that is its behaviour log-probability (the ratio's denominator;
-        // RSL-RL's symmetry augmentation repeats it too). Its mean and value are the old
-        // networks' own on the reflected observation (the KL and the value clip).
-        let n = r.rewards.len();
-        let flown_log_prob: Vec<f32> = r
+        let old_log_prob: Vec<f32> = r
             .actions
             .chunks_exact(ACTION_DIM)
             .zip(old_mean.chunks_exact(ACTION_DIM))
             .map(|(a, m)| gaussian_log_prob(a, m, &old_std))
             .collect();
-        let old_log_prob = both(&flown_log_prob, &flown_log_prob);
-        // GAE over the flown samples (the first `n` rows).
-        let flown_values = old_values.get(..n).unwrap_or(&old_values);
+        let flown_values = &old_values[..];
         let rewards: Vec<f32> = r
             .rewards
             .iter()
@@ -241,27 +184,13 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
         if let Some(seq) = &mut batch.sequence {
             seq.critic_next = critic_next;
         }
-        // The mirror teacher's targets belong to the flown samples (an augmented batch is
-        // refused with the teacher by the config).
-        let teaching = p.mirror_teacher.is_some()
-            && !mirrored
-            && !Self::RECURRENT
-            && r.mirror_weights.len() == n
-            && r.mirror_targets.len() == r.actions.len();
-        let (mirror_targets, mirror_weights) = if teaching {
-            (r.mirror_targets.clone(), r.mirror_weights.clone())
-        } else {
-            (Vec::new(), Vec::new())
-        };
         Batch {
-            mirror_targets,
-            mirror_weights,
             old_log_prob,
             old_mean,
             old_std,
             old_values,
-            returns: both(&returns, &returns),
-            advantages: both(&advantages, &advantages),
+            returns,
+            advantages,
             ..batch
         }
     }
@@ -398,7 +327,6 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             entropy,
             kl,
             clip_fraction,
-            mirror_loss,
         } = actor_pass;
         let mut critic_grads = critic_grads;
         let norm = (squared_norm(&self.actor, &actor_grads)
@@ -440,7 +368,6 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             grad_norm: norm,
             learning_rate: lr,
             skipped: 0,
-            mirror_loss,
         }
     }
 }
@@ -514,7 +441,6 @@ fn epochs(
             stats.kl += s.kl;
             stats.clip_fraction += s.clip_fraction;
             stats.grad_norm += s.grad_norm;
-            stats.mirror_loss += s.mirror_loss;
             count += 1.0;
         }
     }
@@ -525,20 +451,8 @@ fn epochs(
         stats.kl /= count;
         stats.clip_fraction /= count;
         stats.grad_norm /= count;
-        stats.mirror_loss /= count;
     }
     stats
-}
-
-/// The adaptive learning rate after a step that measured `kl` (RSL-RL): divided by 1.5 above
-/// twice the target (floor `min_learning_rate`), multiplied by 1.5 below half of it (cap
-/// 1e-2); unchanged without a target.
-pub fn adapt_learning_rate(lr: f64, kl: f64, p: &PpoConfig) -> f64 {
-    match p.desired_kl {
-        Some(target) if kl > 2.0 * target => (lr / 1.5).max(p.min_learning_rate),
-        Some(target) if kl < target / 2.0 && kl > 0.0 => (lr * 1.5).min(p.max_learning_rate),
-        _ => lr,
-    }
 }
 
 /// What the actor's thread returns from one minibatch.
@@ -548,7 +462,6 @@ struct ActorPass {
     entropy: f64,
     kl: f64,
     clip_fraction: f64,
-    mirror_loss: f64,
 }
 
 /// The critic's clipped value loss on a minibatch and its gradients.
@@ -629,31 +542,12 @@ fn actor_pass<A: PolicyNet>(
         .add_scalar(0.5 * (1.0 + LN_2PI) * ACTION_DIM as f32);
     let surrogate_v = f64::from(surrogate.clone().into_scalar::<f32>());
     let entropy_v = f64::from(entropy.clone().into_scalar::<f32>());
-    let mut loss = surrogate - entropy.mul_scalar(p.entropy_coef);
-    let mut mirror_loss = 0.0;
-    if let (Some(t), false) = (&p.mirror_teacher, b.mirror_weights.is_empty()) {
-        // coef × (1/N) Σ w ‖μ − target‖², the target a constant.
-        let w = pick(&b.mirror_weights);
-        let students = w.iter().sum::<f32>();
-        let target = tensor2(
-            gather(&b.mirror_targets, ACTION_DIM, idx),
-            ACTION_DIM,
-            device,
-        );
-        let w = tensor2(w, 1, device);
-        let sq = (mean - target).square().sum_dim(1) * w;
-        let total = sq.sum();
-        if students > 0.0 {
-            mirror_loss = f64::from(total.clone().into_scalar::<f32>()) / f64::from(students);
-        }
-        loss = loss + total.mul_scalar(t.coef / idx.len().max(1) as f32);
-    }
+    let loss = surrogate - entropy.mul_scalar(p.entropy_coef);
     ActorPass {
         grads: GradientsParams::from_grads(loss.backward(), actor),
         surrogate: surrogate_v,
         entropy: entropy_v,
         kl,
         clip_fraction,
-        mirror_loss,
     }
 }

@@ -46,25 +46,6 @@ pub struct Rollout {
     /// Recurrent policies: the policy's state in every env, carried from one window to the
     /// next by the rollout (zeroed at episode ends, as the controller does); not cleared.
     pub memory: Vec<firmware_core::policy::PolicyState>,
-    /// Also record every step's mirror image (`sitl::mirror`) for symmetry augmentation:
-    /// set by the owner of the buffer, not cleared.
-    pub mirrored: bool,
-    /// With `mirrored`: the reflected observations at the start of each step, laid out as
-    /// `obs`.
-    pub mirror_obs: Vec<f32>,
-    /// With `mirrored`: the actions with their motors renumbered by the reflection, laid
-    /// out as `actions`.
-    pub mirror_actions: Vec<f32>,
-    /// The mirror teacher's gates (`[ppo] mirror_teacher`; empty: off): a step whose target
-    /// gate's mirror is one of them records the policy's own mean on its mirror image as
-    /// its target. Set by the owner of the buffer, not cleared.
-    pub teacher_gates: Vec<usize>,
-    /// With `teacher_gates`: per step and env, the policy's mean on the step's reflected
-    /// observation with its motors renumbered back (laid out as `actions`; zeros where the
-    /// step does not learn from its image).
-    pub mirror_targets: Vec<f32>,
-    /// With `teacher_gates`: per step and env, 1 where the step learns from its image, else 0.
-    pub mirror_weights: Vec<f32>,
 }
 
 impl Rollout {
@@ -91,19 +72,14 @@ impl Rollout {
         self.timeouts.clear();
         self.last_obs.clear();
         self.actor_h0.clear();
-        self.mirror_obs.clear();
-        self.mirror_actions.clear();
-        self.mirror_targets.clear();
-        self.mirror_weights.clear();
     }
 }
 
 /// Collects `steps` steps of every env of `env` into `rollout` (cleared first): actions are
 /// `policy`'s Gaussian means (firmware-core's network, the deployed code, in parallel over
 /// envs) plus `std`-scaled noise drawn serially from `noise_rng`. `on_step` sees each step's
-/// rewards and dones. With `rollout.mirrored`, each step's mirror image is recorded too, and
-/// with `rollout.teacher_gates` the mirror teacher's targets (an environment whose track has
-/// no mirror symmetry is refused).
+/// rewards and dones. An observation the policy cannot act on (not finite: the environment
+/// never gives one) stops the collection with an error instead of flying a stale action.
 pub fn collect_rollout(
     env: &mut VecEnv,
     policy: &Policy<'_>,
@@ -134,43 +110,8 @@ pub fn collect_rollout(
     }
     let mut actions = vec![0.0f32; n * ACTION_DIM];
     let mut noise = vec![0.0f32; n * ACTION_DIM];
-    let mut mirrored = Vec::new();
-    let no_mirror =
-        |e: sitl::mirror::NoMirror| TrainError::Unsupported(format!("mirror images: {e}"));
-    let teaching = !rollout.teacher_gates.is_empty();
-    if teaching && policy.is_recurrent() {
-        return Err(TrainError::Unsupported(
-            "the mirror teacher needs a feed-forward policy".into(),
-        ));
-    }
-    let mirror = if rollout.mirrored || teaching {
-        Some(env.mirror().map_err(no_mirror)?.clone())
-    } else {
-        None
-    };
-    let mut targets = Vec::new();
-    let mut weights = Vec::new();
+    let refused = std::sync::atomic::AtomicUsize::new(0);
     for _ in 0..steps {
-        if let Some(m) = &mirror {
-            env.mirrored_observations(&mut mirrored)
-                .map_err(no_mirror)?;
-            if rollout.mirrored {
-                rollout.mirror_obs.extend_from_slice(&mirrored);
-            }
-            if teaching {
-                weights.clear();
-                weights.extend(env.target_gates().map(|g| {
-                    if rollout.teacher_gates.contains(&m.gate(g)) {
-                        1.0f32
-                    } else {
-                        0.0
-                    }
-                }));
-                mirror_teacher_targets(policy, m, &mirrored, obs_dim, &mut weights, &mut targets);
-                rollout.mirror_targets.extend_from_slice(&targets);
-                rollout.mirror_weights.extend_from_slice(&weights);
-            }
-        }
         let obs = env.observations();
         rollout.obs.extend_from_slice(obs);
         for z in &mut noise {
@@ -211,20 +152,21 @@ pub fn collect_rollout(
                     .zip(memory)
                     .skip(done)
                 {
-                    let mean = Observation::from_values(o).and_then(|o| policy.act(&o, memory));
-                    let Some(mean) = mean else {
-                        continue;
-                    };
-                    explore(a, &mean, std, z);
+                    match Observation::from_values(o).and_then(|o| policy.act(&o, memory)) {
+                        Some(mean) => explore(a, &mean, std, z),
+                        None => {
+                            refused.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        }
+                    }
                 }
             });
-        rollout.actions.extend_from_slice(&actions);
-        if let Some(m) = mirror.as_ref().filter(|_| rollout.mirrored) {
-            for a in actions.chunks_exact(ACTION_DIM) {
-                let a: [f32; ACTION_DIM] = core::array::from_fn(|k| a[k]);
-                rollout.mirror_actions.extend_from_slice(&m.motors(&a));
-            }
+        let refused = refused.swap(0, std::sync::atomic::Ordering::Relaxed);
+        if refused > 0 {
+            return Err(TrainError::Unsupported(format!(
+                "the policy could not act on {refused} observations of a step (not finite?): the rollout stops rather than fly stale actions"
+            )));
         }
+        rollout.actions.extend_from_slice(&actions);
         env.step(&actions)
             .map_err(|e| TrainError::Unsupported(e.to_string()))?;
         rollout.rewards.extend_from_slice(env.rewards());
@@ -286,42 +228,6 @@ fn act_lanes_avx512(policy: &Policy<'_>, obs: &[f32]) -> Option<[[f32; ACTION_DI
 #[target_feature(enable = "avx2")]
 fn act_lanes_avx2(policy: &Policy<'_>, obs: &[f32]) -> Option<[[f32; ACTION_DIM]; LANES]> {
     policy.act_lanes(obs)
-}
-
-/// The mirror teacher's targets of one step into `out` (`envs × 4`, resized): for every env
-/// with a non-zero weight, the feed-forward `policy`'s mean on the env's reflected
-/// observation (`mirrored`, `envs × obs_dim`) with its motors renumbered back by `mirror`
-/// (a reflection is its own inverse); zeros elsewhere. An observation that does not load
-/// (not finite) gets weight 0.
-fn mirror_teacher_targets(
-    policy: &Policy<'_>,
-    mirror: &sitl::mirror::Mirror,
-    mirrored: &[f32],
-    obs_dim: usize,
-    weights: &mut [f32],
-    out: &mut Vec<f32>,
-) {
-    out.clear();
-    out.resize(weights.len() * ACTION_DIM, 0.0);
-    out.par_chunks_mut(ACTION_DIM * 64)
-        .zip(mirrored.par_chunks(obs_dim * 64))
-        .zip(weights.par_chunks_mut(64))
-        .for_each(|((t, o), w)| {
-            for ((t, o), w) in t
-                .chunks_exact_mut(ACTION_DIM)
-                .zip(o.chunks_exact(obs_dim))
-                .zip(w)
-            {
-                if *w == 0.0 {
-                    continue;
-                }
-                let mut state = PolicyState::Stateless;
-                match Observation::from_values(o).and_then(|o| policy.act(&o, &mut state)) {
-                    Some(mean) => t.copy_from_slice(&mirror.motors(&mean)),
-                    None => *w = 0.0,
-                }
-            }
-        });
 }
 
 /// Appends a firmware-core recurrent state in the flat layout of

@@ -250,8 +250,7 @@ impl Loop {
             .seed
             .wrapping_add(u64::from(state.iteration).wrapping_mul(0x9e37_79b9_7f4a_7c15));
         let env = config.make_env(env_seed)?;
-        let mut rollout = Rollout::new(env.num_envs(), env.obs_dim());
-        rollout.mirrored = config.ppo.mirror_augmentation;
+        let rollout = Rollout::new(env.num_envs(), env.obs_dim());
         Ok(Self {
             arch: config.architecture()?,
             rollout,
@@ -271,18 +270,12 @@ fn iteration<A: PolicyNet, C: ValueNet>(
     let started = Instant::now();
     let params = &PpoConfig {
         max_std: config.ppo.max_std_at(state.iteration),
-        desired_kl: config.ppo.desired_kl_at(state.iteration),
         ..config.ppo.clone()
     };
     state.learner.train_actor = config
         .warm_start
         .as_ref()
         .is_none_or(|w| state.iteration >= w.critic_iterations);
-    // The mirror teacher's targets are recorded from its first iteration on.
-    lp.rollout.teacher_gates = match &config.ppo.mirror_teacher {
-        Some(t) if state.iteration >= t.from_iteration => t.gates.clone(),
-        _ => Vec::new(),
-    };
     lp.env.set_reward_weights(config.reward_at(state.iteration));
     // Rollout with the deployed network.
     let payload = state.learner.actor.payload();

@@ -5,21 +5,23 @@ use host_trainer::config::{ConfigError, TrainConfig};
 use sitl::env::RewardWeights;
 
 const STAGE1: &str = include_str!("../configs/stage1.toml");
-const FINETUNE: &str = include_str!("../configs/stage1_finetune.toml");
+const FINETUNE: &str = include_str!("../configs/experiments/stage1_finetune.toml");
 const PAPER: &str = include_str!("../configs/stage1_paper.toml");
 
 #[test]
 fn every_config_in_configs_parses() {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
     let mut n = 0;
-    for entry in std::fs::read_dir(&dir).unwrap() {
-        let path = entry.unwrap().path();
-        if path.extension().is_some_and(|e| e == "toml") {
-            TrainConfig::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
-            n += 1;
+    for dir in [dir.clone(), dir.join("experiments")] {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                TrainConfig::load(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+                n += 1;
+            }
         }
     }
-    assert!(n >= 6, "{n} configs");
+    assert!(n >= 19, "{n} configs");
 }
 
 #[test]
@@ -70,7 +72,7 @@ fn warm_start_schedules() {
 
 #[test]
 fn refine_stages_inherit_the_teacher_and_start_with_the_student_flying() {
-    let c = TrainConfig::parse(include_str!("../configs/stage2_B.toml")).unwrap();
+    let c = TrainConfig::parse(include_str!("../configs/experiments/stage2_B.toml")).unwrap();
     let warm = c.warm_start.unwrap();
     let stages = warm.stages();
     assert_eq!(stages.len(), 3);
@@ -89,7 +91,7 @@ fn refine_stages_inherit_the_teacher_and_start_with_the_student_flying() {
     assert_eq!(stages[2].steps_per_env, 750);
     assert!((stages[2].round_learning_rate(7) - 3e-5).abs() < 1e-12);
     // A bad refine stage is refused like a bad warm start.
-    let text = include_str!("../configs/stage2_B.toml").replacen(
+    let text = include_str!("../configs/experiments/stage2_B.toml").replacen(
         "rounds = 8\nsteps_per_env = 750",
         "rounds = 8\nsteps_per_env = 0",
         1,
@@ -110,7 +112,7 @@ fn typos_and_bad_values_are_errors() {
     let bad = STAGE1.replace("preset = \"paper\"", "preset = \"moon\"");
     let e = TrainConfig::parse(&bad).unwrap_err().to_string();
     assert!(e.contains("moon"), "{e}");
-    let stage2 = include_str!("../configs/stage2_B.toml");
+    let stage2 = include_str!("../configs/experiments/stage2_B.toml");
     for bad in [
         "learning_rate = 1e-3\nlearning_rate_final = -1.0",
         "learning_rate = 1e-3\nteacher_share_start = 1.5",
@@ -160,8 +162,8 @@ fn a_selection_is_checked_and_hashed() {
         assert!(e.contains(field), "{to}: {e}");
     }
     // A race (keep_best on) ranks its races; a selection there is refused.
-    let race =
-        include_str!("../configs/stage2_B.toml").replace("[env]", &format!("{select}\n\n[env]"));
+    let race = include_str!("../configs/experiments/stage2_B.toml")
+        .replace("[env]", &format!("{select}\n\n[env]"));
     let e = TrainConfig::parse(&race).unwrap_err().to_string();
     assert!(e.contains("time trials"), "{e}");
 }
@@ -211,64 +213,11 @@ fn the_sigma_ceiling_falls_linearly_between_its_iterations() {
     }
 }
 
-/// `ppo.desired_kl_decay`: the KL target falls linearly between its iterations, exactly
-/// `desired_kl` before; absent, it leaves the canonical TOML (older configs keep their hash);
-/// it needs a target to lower and may not raise it.
-#[test]
-fn the_kl_target_falls_linearly_between_its_iterations() {
-    let decay = "desired_kl_decay = { final_kl = 0.001, from_iteration = 100, to_iteration = 400 }\ninit_std";
-    let c = TrainConfig::parse(&FINETUNE.replacen("init_std", decay, 1)).unwrap();
-    let plain = TrainConfig::parse(FINETUNE).unwrap();
-    let target = plain.ppo.desired_kl.unwrap();
-    assert_eq!(c.ppo.desired_kl_at(0), Some(target));
-    assert_eq!(c.ppo.desired_kl_at(100), Some(target));
-    for (i, want) in [
-        (250, target + (0.001 - target) * 0.5),
-        (400, 0.001),
-        (10_000, 0.001),
-    ] {
-        let at = c.ppo.desired_kl_at(i).unwrap();
-        assert!((at - want).abs() < 1e-9, "iteration {i}: {at}");
-    }
-    assert_eq!(plain.ppo.desired_kl_at(10_000), Some(target));
-    assert_ne!(c.hash(), plain.hash());
-    assert!(
-        !toml::to_string(&plain)
-            .unwrap()
-            .contains("desired_kl_decay")
-    );
-    assert_eq!(
-        TrainConfig::parse(&toml::to_string(&c).unwrap()).unwrap(),
-        c
-    );
-    for bad in [
-        // A target that rises, one that falls to 0, one that falls backwards in time.
-        "desired_kl_decay = { final_kl = 1.0, from_iteration = 1, to_iteration = 4 }\ninit_std",
-        "desired_kl_decay = { final_kl = 0.0, from_iteration = 1, to_iteration = 4 }\ninit_std",
-        "desired_kl_decay = { final_kl = 0.001, from_iteration = 4, to_iteration = 4 }\ninit_std",
-    ] {
-        assert!(
-            matches!(
-                TrainConfig::parse(&FINETUNE.replacen("init_std", bad, 1)),
-                Err(ConfigError::Invalid(_))
-            ),
-            "{bad}"
-        );
-    }
-    // No target to lower: a fixed learning rate.
-    let mut fixed = c.clone();
-    fixed.ppo.desired_kl = None;
-    assert!(matches!(
-        TrainConfig::parse(&toml::to_string(&fixed).unwrap()),
-        Err(ConfigError::Invalid(_))
-    ));
-}
-
 /// `pass_decay`: the pass weight falls linearly between its iterations, the other weights
 /// stay; absent, it leaves the canonical TOML (older configs keep their hash).
 #[test]
 fn the_pass_weight_falls_linearly_between_its_iterations() {
-    const RL: &str = include_str!("../configs/stage1_rl.toml");
+    const RL: &str = include_str!("../configs/experiments/stage1_rl.toml");
     let decay = "\n[pass_decay]\nfinal_weight = 0.25\nfrom_iteration = 100\nto_iteration = 400\n";
     let c = TrainConfig::parse(&format!("{RL}{decay}")).unwrap();
     let plain = TrainConfig::parse(RL).unwrap();
@@ -311,105 +260,12 @@ fn the_pass_weight_falls_linearly_between_its_iterations() {
     }
 }
 
-#[test]
-fn mirror_augmentation_is_a_feed_forward_option_that_keeps_old_hashes() {
-    let on = TrainConfig::parse(&FINETUNE.replacen(
-        "init_std",
-        "mirror_augmentation = true\ninit_std",
-        1,
-    ))
-    .unwrap();
-    assert!(on.ppo.mirror_augmentation);
-    assert!(
-        !TrainConfig::parse(FINETUNE)
-            .unwrap()
-            .ppo
-            .mirror_augmentation
-    );
-    // Off is the default and left out of the canonical TOML: configs written before the
-    // option hash as they did; on, it is part of the hash.
-    let off = TrainConfig::parse(&FINETUNE.replacen(
-        "init_std",
-        "mirror_augmentation = false\ninit_std",
-        1,
-    ))
-    .unwrap();
-    assert_eq!(off.hash(), TrainConfig::parse(FINETUNE).unwrap().hash());
-    assert_ne!(on.hash(), off.hash());
-    let round_trip = TrainConfig::parse(&toml::to_string(&on).unwrap()).unwrap();
-    assert_eq!(round_trip, on);
-    // Recurrent rows are refused by name.
-    let g = include_str!("../configs/stage2_G.toml");
-    let e = TrainConfig::parse(&g.replacen("[ppo]\n", "[ppo]\nmirror_augmentation = true\n", 1))
-        .unwrap_err()
-        .to_string();
-    assert!(
-        e.contains("mirror_augmentation") && e.contains("recurrent"),
-        "{e}"
-    );
-}
-
-#[test]
-fn the_mirror_teacher_is_checked_and_hashed() {
-    let teacher =
-        "mirror_teacher = { gates = [0, 2, 4], coef = 0.5, from_iteration = 100 }\ninit_std";
-    let on = TrainConfig::parse(&FINETUNE.replacen("init_std", teacher, 1)).unwrap();
-    let t = on.ppo.mirror_teacher.clone().unwrap();
-    assert_eq!(
-        (t.gates, t.coef, t.from_iteration),
-        (vec![0, 2, 4], 0.5, 100)
-    );
-    assert_eq!(
-        TrainConfig::parse(FINETUNE).unwrap().ppo.mirror_teacher,
-        None
-    );
-    assert_ne!(on.hash(), TrainConfig::parse(FINETUNE).unwrap().hash());
-    let round_trip = TrainConfig::parse(&toml::to_string(&on).unwrap()).unwrap();
-    assert_eq!(round_trip, on);
-    for (bad, why) in [
-        ("gates = [0, 6], coef = 0.5", "gates"),
-        ("gates = [], coef = 0.5", "gates"),
-        ("gates = [1], coef = 0.0", "coef"),
-        ("gates = [1], coef = nan", "coef"),
-    ] {
-        let text = FINETUNE.replacen(
-            "init_std",
-            &format!("mirror_teacher = {{ {bad} }}\ninit_std"),
-            1,
-        );
-        let e = TrainConfig::parse(&text).unwrap_err().to_string();
-        assert!(
-            e.contains("mirror_teacher") && e.contains(why),
-            "{bad}: {e}"
-        );
-    }
-    let both = FINETUNE.replacen(
-        "init_std",
-        "mirror_augmentation = true\nmirror_teacher = { gates = [1], coef = 1.0 }\ninit_std",
-        1,
-    );
-    let e = TrainConfig::parse(&both).unwrap_err().to_string();
-    assert!(e.contains("mirror_augmentation"), "{e}");
-    let g = include_str!("../configs/stage2_G.toml");
-    let e = TrainConfig::parse(&g.replacen(
-        "[ppo]\n",
-        "[ppo]\nmirror_teacher = { gates = [0], coef = 1.0 }\n",
-        1,
-    ))
-    .unwrap_err()
-    .to_string();
-    assert!(
-        e.contains("mirror_teacher") && e.contains("recurrent"),
-        "{e}"
-    );
-}
-
 /// `env.fold_mirror`: read, hashed only when on (older configs keep their hash), carried
 /// into the observation spec (pipeline version 2) that the env and the blob use, and
-/// refused beside the options that train on mirror images or label world motors.
+/// refused beside a warm start, whose teacher labels world motors.
 #[test]
 fn the_mirror_fold_is_checked_hashed_and_reaches_the_spec() {
-    const RL: &str = include_str!("../configs/stage1_rl.toml");
+    const RL: &str = include_str!("../configs/experiments/stage1_rl.toml");
     let plain = TrainConfig::parse(RL).unwrap();
     let on = TrainConfig::parse(&RL.replacen("[env]\n", "[env]\nfold_mirror = true\n", 1)).unwrap();
     assert!(on.env.fold_mirror && !plain.env.fold_mirror);
@@ -425,14 +281,10 @@ fn the_mirror_fold_is_checked_hashed_and_reaches_the_spec() {
         on.observation_spec().with_fold(false),
         plain.observation_spec()
     );
-    let both = RL
-        .replacen("[env]\n", "[env]\nfold_mirror = true\n", 1)
-        .replacen("init_std", "mirror_augmentation = true\ninit_std", 1);
-    let e = TrainConfig::parse(&both).unwrap_err().to_string();
-    assert!(
-        e.contains("fold_mirror") && e.contains("mirror_augmentation"),
-        "{e}"
-    );
+    // The deleted mirror options are unknown keys now, not silently ignored.
+    let old = RL.replacen("init_std", "mirror_augmentation = true\ninit_std", 1);
+    let e = TrainConfig::parse(&old).unwrap_err().to_string();
+    assert!(e.contains("mirror_augmentation"), "{e}");
     // stage1_finetune.toml warm-starts from the baseline, whose labels are the world's motors.
     let e = TrainConfig::parse(&FINETUNE.replacen("[env]\n", "[env]\nfold_mirror = true\n", 1))
         .unwrap_err()
@@ -447,8 +299,9 @@ fn the_mirror_fold_is_checked_hashed_and_reaches_the_spec() {
 #[test]
 fn every_committed_config_round_trips_through_the_env_schema() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let mut paths: Vec<_> = std::fs::read_dir(root.join("host-trainer/configs"))
-        .unwrap()
+    let mut paths: Vec<_> = ["host-trainer/configs", "host-trainer/configs/experiments"]
+        .into_iter()
+        .flat_map(|d| std::fs::read_dir(root.join(d)).unwrap())
         .map(|e| e.unwrap().path())
         .collect();
     for entry in std::fs::read_dir(root.join("policies")).unwrap() {

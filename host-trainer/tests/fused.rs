@@ -80,8 +80,6 @@ fn batch(l: &Learner, n: usize, seed: u64) -> Batch {
         returns,
         advantages,
         sequence: None,
-        mirror_targets: Vec::new(),
-        mirror_weights: Vec::new(),
     }
 }
 
@@ -332,104 +330,4 @@ fn a_fused_critic_only_step_equals_burns() {
     assert_eq!(flat(&fused.actor), flat(&learner(17).actor));
     assert_networks_close(&fused, &burn, 1e-5);
     assert_ne!(flat(&fused.critic), flat(&learner(17).critic));
-}
-
-/// `batch` with mirror teacher targets on about half of its samples (weights 0 or 1): the
-/// old means, their motors renumbered as the figure-8's reflection does (0 <-> 3, 1 <-> 2)
-/// and shifted by up to 0.3.
-fn with_mirror_targets(mut b: Batch, seed: u64) -> Batch {
-    let mut r = ChaCha8Rng::seed_from_u64(seed);
-    b.mirror_weights = (0..b.len())
-        .map(|_| if r.random_bool(0.5) { 1.0 } else { 0.0 })
-        .collect();
-    let shift = [0.3, -0.2, 0.1, -0.3];
-    b.mirror_targets = b
-        .old_mean
-        .chunks_exact(4)
-        .flat_map(|m| [m[3], m[2], m[1], m[0]])
-        .enumerate()
-        .map(|(i, m)| m + shift[i % 4] + r.random_range(-0.05..0.05))
-        .collect();
-    b
-}
-
-fn teacher_params(coef: f32) -> PpoConfig {
-    PpoConfig {
-        mirror_teacher: Some(host_trainer::config::MirrorTeacher {
-            gates: vec![0, 2, 4],
-            coef,
-            from_iteration: 0,
-        }),
-        ..params()
-    }
-}
-
-/// The mirror teacher's term in the fused update has the gradient `burn`'s autodiff gives
-/// the same loss, and it changes the gradient (a term the update ignored would pass the
-/// parity with a zero coefficient but not this).
-#[test]
-fn the_mirror_teacher_term_has_burns_gradient() {
-    let l = learner(5);
-    let b = with_mirror_targets(batch(&l, 2000, 2), 9);
-    let p = teacher_params(0.8);
-    let idx: Vec<usize> = (0..b.len()).collect();
-    let burn_actor = l.actor_gradient(&b, &p);
-    let (actor, _) = FusedLearner::new(&l.actor, &l.critic, None).gradients(&b, &idx, &p);
-    for (t, from, to) in tensors(4, true) {
-        let e = relative_error(&actor[from..to], &burn_actor[from..to]);
-        assert!(e < 1e-4, "actor {t}: relative error {e}");
-    }
-    let (plain, _) = FusedLearner::new(&l.actor, &l.critic, None).gradients(&b, &idx, &params());
-    let last_bias = tensors(4, true)[5].clone();
-    let moved = relative_error(
-        &plain[last_bias.1..last_bias.2],
-        &actor[last_bias.1..last_bias.2],
-    );
-    assert!(
-        moved > 0.05,
-        "the term hardly changed the gradient ({moved})"
-    );
-}
-
-/// With no advantage to follow, updates under the term alone bring the actor's mean to its
-/// targets on the samples that learn from their images, in both updates, and leave it to
-/// PPO elsewhere; the logged `mirror_loss` is the mean squared distance before each step.
-#[test]
-fn the_mirror_teacher_pulls_the_mean_to_its_targets() {
-    for update in [UpdateKind::Fused, UpdateKind::Burn] {
-        let mut l = learner(6);
-        let mut b = with_mirror_targets(batch(&l, 1024, 3), 11);
-        b.advantages.iter_mut().for_each(|a| *a = 0.0);
-        let p = PpoConfig {
-            update,
-            desired_kl: None,
-            learning_rate: 3e-3,
-            entropy_coef: 0.0,
-            ..teacher_params(1.0)
-        };
-        let distance = |l: &Learner| -> f64 {
-            let x = Tensor::from_data(TensorData::new(b.obs.clone(), [b.len(), 17]), &l.device);
-            let mean = values(l.actor.mean(x));
-            let (mut sq, mut n) = (0.0, 0.0);
-            for i in (0..b.len()).filter(|&i| b.mirror_weights[i] == 1.0) {
-                for k in 0..4 {
-                    sq += f64::from(mean[i * 4 + k] - b.mirror_targets[i * 4 + k]).powi(2);
-                }
-                n += 1.0;
-            }
-            sq / n
-        };
-        let before = distance(&l);
-        let mut rng = ChaCha8Rng::seed_from_u64(1);
-        let first = l.update(&b, &p, &mut rng);
-        assert!(first.mirror_loss > 0.0, "{update:?}: no mirror loss logged");
-        for _ in 0..30 {
-            l.update(&b, &p, &mut rng);
-        }
-        let after = distance(&l);
-        assert!(
-            after < 0.2 * before,
-            "{update:?}: distance to the targets {before} -> {after}"
-        );
-    }
 }

@@ -17,7 +17,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use sitl::env::{EnvConfig, OBS_DIM, VecEnv};
 
-const CONFIG: &str = include_str!("../configs/stage1_finetune.toml");
+const CONFIG: &str = include_str!("../configs/experiments/stage1_finetune.toml");
 
 /// Max |burn − firmware-core| over `obs` (rows of 17), the firmware side read from the
 /// exported blob.

@@ -25,7 +25,6 @@ fn params() -> PpoConfig {
         entropy_coef: 0.0,
         learning_rate: 1e-3,
         desired_kl: None,
-        desired_kl_decay: None,
         max_grad_norm: 1.0,
         min_learning_rate: 1e-5,
         max_learning_rate: 1e-2,
@@ -35,8 +34,6 @@ fn params() -> PpoConfig {
         init_std: 0.5,
         init_hover: false,
         update: UpdateKind::Fused,
-        mirror_augmentation: false,
-        mirror_teacher: None,
     }
 }
 
@@ -81,8 +78,6 @@ fn an_update_moves_the_mean_toward_positive_advantages() {
         returns: vec![0.0; n],
         advantages,
         sequence: None,
-        mirror_targets: Vec::new(),
-        mirror_weights: Vec::new(),
     };
     // The diagnostic gradient (examples/gradient_snr.rs): one value per actor parameter
     // (the blob's weights and the four log σ), and a plain step along it moves motor 0 the
@@ -202,8 +197,6 @@ fn parallel_passes_equal_sequential_passes() {
         returns: f(n, 0.5),
         advantages: f(n, 2.0),
         sequence: None,
-        mirror_targets: Vec::new(),
-        mirror_weights: Vec::new(),
     };
     let idx: Vec<usize> = (0..n).collect();
     let mut p = params();
@@ -249,8 +242,6 @@ fn a_nan_minibatch_changes_nothing() {
         returns: vec![0.1; n],
         advantages,
         sequence: None,
-        mirror_targets: Vec::new(),
-        mirror_weights: Vec::new(),
     };
     let before = learner.actor.payload();
     let idx: Vec<usize> = (0..n).collect();
@@ -295,8 +286,6 @@ fn the_std_ceiling_holds_against_the_entropy_bonus() {
             returns: vec![0.0; n],
             advantages: vec![0.0; n],
             sequence: None,
-            mirror_targets: Vec::new(),
-            mirror_weights: Vec::new(),
         };
         let p = PpoConfig {
             entropy_coef: 1.0,
@@ -332,202 +321,6 @@ fn the_std_ceiling_holds_against_the_entropy_bonus() {
             "fused {fused}: {capped:?}"
         );
     }
-}
-
-/// Symmetry augmentation (`[ppo] mirror_augmentation`): the batch is the plain batch
-/// followed by the mirror images, each image with the old networks' own mean and value on
-/// the reflected observation, and the flown sample's return, advantage and behaviour
-/// log-probability; the flown half is exactly the batch without augmentation.
-#[test]
-fn a_mirrored_batch_is_the_plain_batch_then_its_images() {
-    use firmware_core::policy::Policy;
-    use host_trainer::rollout::{Rollout, collect_rollout};
-    use sitl::env::{EnvConfig, VecEnv};
-    let device = Device::flex().autodiff();
-    let arch = Architecture::table1(TableRow::A);
-    let mut rng = init_rng(9);
-    let actor = Actor::fresh(&arch, 0.3, &mut rng, &device);
-    let critic = Critic::fresh(&arch, &mut rng, &device);
-    let learner = Learner::new(actor, critic, 1e-3, device.clone());
-    let payload = learner.actor.payload();
-    let policy = Policy::from_payload(&arch, &payload).unwrap();
-    let std = learner.actor.std();
-    let (envs, steps) = (32, 20);
-    let p = PpoConfig {
-        steps_per_env: steps,
-        gamma: 0.99,
-        lambda: 0.95,
-        ..params()
-    };
-    let mut batches = Vec::new();
-    for mirrored in [false, true] {
-        let mut env = VecEnv::time_trial(EnvConfig::paper_along_track(envs, 5));
-        let mut rollout = Rollout::new(envs, 17);
-        rollout.mirrored = mirrored;
-        let mut noise = ChaCha8Rng::seed_from_u64(1);
-        collect_rollout(
-            &mut env,
-            &policy,
-            &std,
-            steps,
-            &mut noise,
-            &mut rollout,
-            |_, _| {},
-        )
-        .unwrap();
-        assert_eq!(
-            rollout.mirror_obs.len(),
-            if mirrored { rollout.obs.len() } else { 0 }
-        );
-        let batch = learner.prepare(&rollout, &p);
-        batches.push((rollout, batch));
-    }
-    let (_, plain) = &batches[0];
-    let (rollout, aug) = &batches[1];
-    let n = envs * steps;
-    assert_eq!(plain.len(), n);
-    assert_eq!(aug.len(), 2 * n);
-    assert_eq!(&aug.obs[..n * 17], &plain.obs[..]);
-    assert_eq!(&aug.obs[n * 17..], &rollout.mirror_obs[..]);
-    assert_eq!(&aug.actions[n * 4..], &rollout.mirror_actions[..]);
-    for (name, a, b) in [
-        ("returns", &aug.returns[..n], &plain.returns[..]),
-        ("advantages", &aug.advantages[..n], &plain.advantages[..]),
-        (
-            "returns of the images",
-            &aug.returns[n..],
-            &plain.returns[..],
-        ),
-        (
-            "advantages of the images",
-            &aug.advantages[n..],
-            &plain.advantages[..],
-        ),
-        ("old values", &aug.old_values[..n], &plain.old_values[..]),
-        (
-            "old log-probabilities",
-            &aug.old_log_prob[..n],
-            &plain.old_log_prob[..],
-        ),
-    ] {
-        let worst = a
-            .iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0f32, f32::max);
-        assert!(worst < 1e-5, "{name}: {worst}");
-    }
-    // The images' old outputs are the networks' on the reflected observations.
-    let x = Tensor::from_data(
-        TensorData::new(rollout.mirror_obs.clone(), [n, 17]),
-        &device,
-    );
-    let mean = values(learner.actor.mean(x.clone()));
-    let value = values(learner.critic.value(x));
-    let std4: [f32; 4] = core::array::from_fn(|k| std[k]);
-    for i in 0..n {
-        let m = &mean[i * 4..i * 4 + 4];
-        assert!((aug.old_values[n + i] - value[i]).abs() < 1e-4);
-        for (old, now) in aug.old_mean[(n + i) * 4..(n + i) * 4 + 4].iter().zip(m) {
-            assert!((old - now).abs() < 1e-4);
-        }
-        // An image's behaviour log-probability is the flown action's: the reflected
-        // policy drew it with that probability, whatever the policy does at the image.
-        let flown = gaussian_log_prob(
-            &rollout.actions[i * 4..i * 4 + 4],
-            &plain.old_mean[i * 4..i * 4 + 4],
-            &std4,
-        );
-        assert!((aug.old_log_prob[n + i] - flown).abs() < 1e-3, "{i}");
-        assert!(
-            (aug.old_log_prob[n + i] - plain.old_log_prob[i]).abs() < 1e-6,
-            "{i}"
-        );
-    }
-    // The images differ from the samples (the reflection is not the identity).
-    assert!(aug.obs[n * 17..] != aug.obs[..n * 17]);
-}
-
-/// The mirror teacher (`[ppo] mirror_teacher`): with the teaching gates 0, 2 and 4, exactly
-/// the samples targeting 1, 3 and 5 (their mirrors on the figure-8) learn from their images,
-/// each toward the policy's own mean on its reflected observation with the motors
-/// renumbered, and `prepare` carries those targets into the batch unchanged.
-#[test]
-fn the_mirror_teacher_targets_are_the_policy_on_the_images() {
-    use firmware_core::observation::Observation;
-    use firmware_core::policy::{Policy, PolicyState};
-    use host_trainer::config::MirrorTeacher;
-    use host_trainer::rollout::{Rollout, collect_rollout};
-    use sitl::env::{EnvConfig, VecEnv};
-    let device = Device::flex().autodiff();
-    let arch = Architecture::table1(TableRow::A);
-    let mut rng = init_rng(4);
-    let actor = Actor::fresh(&arch, 0.3, &mut rng, &device);
-    let critic = Critic::fresh(&arch, &mut rng, &device);
-    let learner = Learner::new(actor, critic, 1e-3, device);
-    let payload = learner.actor.payload();
-    let policy = Policy::from_payload(&arch, &payload).unwrap();
-    let std = learner.actor.std();
-    let envs = 64;
-    let p = PpoConfig {
-        steps_per_env: 1,
-        mirror_teacher: Some(MirrorTeacher {
-            gates: vec![0, 2, 4],
-            coef: 1.0,
-            from_iteration: 0,
-        }),
-        ..params()
-    };
-    let mut env = VecEnv::time_trial(EnvConfig::paper_along_track(envs, 8));
-    let mirror = env.mirror().unwrap().clone();
-    let mut rollout = Rollout::new(envs, 17);
-    rollout.teacher_gates = vec![0, 2, 4];
-    let mut noise = ChaCha8Rng::seed_from_u64(2);
-    let (mut students, mut others) = (0, 0);
-    let mut images = Vec::new();
-    for _ in 0..30 {
-        let targets: Vec<usize> = env.target_gates().collect();
-        env.mirrored_observations(&mut images).unwrap();
-        collect_rollout(
-            &mut env,
-            &policy,
-            &std,
-            1,
-            &mut noise,
-            &mut rollout,
-            |_, _| {},
-        )
-        .unwrap();
-        assert_eq!(rollout.mirror_weights.len(), envs);
-        assert!(
-            rollout.mirror_obs.is_empty(),
-            "no augmentation was asked for"
-        );
-        for (e, &target) in targets.iter().enumerate() {
-            let w = rollout.mirror_weights[e];
-            let t = &rollout.mirror_targets[e * 4..e * 4 + 4];
-            if target % 2 == 1 {
-                students += 1;
-                assert_eq!(w, 1.0, "target g{target}");
-                let o = Observation::from_values(&images[e * 17..e * 17 + 17]).unwrap();
-                let mean = policy.act(&o, &mut PolicyState::Stateless).unwrap();
-                assert_eq!(t, &mirror.motors(&mean)[..]);
-                assert_ne!(mean[0], mean[3], "a renumbering would pass unseen");
-            } else {
-                others += 1;
-                assert_eq!(w, 0.0, "target g{target}");
-                assert_eq!(t, &[0.0; 4][..]);
-            }
-        }
-        let batch = learner.prepare(&rollout, &p);
-        assert_eq!(batch.mirror_weights, rollout.mirror_weights);
-        assert_eq!(batch.mirror_targets, rollout.mirror_targets);
-        assert_eq!(batch.len(), envs);
-    }
-    assert!(
-        students > 100 && others > 100,
-        "{students} students, {others} others"
-    );
 }
 
 /// The rollout runs a feed-forward policy 16 envs side by side (`Policy::act_lanes`, built

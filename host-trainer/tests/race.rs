@@ -90,7 +90,11 @@ fn inconsistent_race_configs_are_refused_with_a_reason() {
         ),
         (
             CONFIG[..CONFIG.find("[race]").unwrap()].to_string(),
-            "env.spawn 'stage2'",
+            "needs a [race] section",
+        ),
+        (
+            CONFIG.replace("competition_weight = 0.5", "competition_weight = -0.5"),
+            "race.competition_weight",
         ),
     ];
     for (text, why) in cases {

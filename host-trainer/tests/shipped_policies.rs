@@ -19,7 +19,7 @@ fn root() -> &'static Path {
 const SHIPPED: &[(&str, &str, f64)] = &[
     (
         "stage1_imitation",
-        "host-trainer/configs/stage1_imitation.toml",
+        "host-trainer/configs/experiments/stage1_imitation.toml",
         10.94,
     ),
     ("stage1_rl", "policies/stage1_rl/config.toml", 8.40),
@@ -27,26 +27,27 @@ const SHIPPED: &[(&str, &str, f64)] = &[
 ];
 
 /// `policies/stage1_rl.blob` is PPO from a random network with the committed recipe: its
-/// run's config is `configs/stage1_rl.toml` but for the run's name (e7).
+/// run's config is `configs/experiments/stage1_rl.toml` but for the run's name (e7).
 #[test]
 fn the_rl_policy_is_the_committed_recipe() {
     let run = TrainConfig::load(&root().join("policies/stage1_rl/config.toml")).unwrap();
     let mut recipe =
-        TrainConfig::load(&root().join("host-trainer/configs/stage1_rl.toml")).unwrap();
+        TrainConfig::load(&root().join("host-trainer/configs/experiments/stage1_rl.toml")).unwrap();
     assert!(recipe.warm_start.is_none(), "no imitation");
     recipe.run.name = run.run.name.clone();
     assert_eq!(recipe.hash(), run.hash());
 }
 
 /// `policies/stage1_fold.blob` is PPO from a random network: run fold1 with the committed
-/// recipe (`configs/stage1_fold.toml` but for the name), forked at its last iteration into
+/// recipe (`configs/experiments/stage1_fold.toml` but for the name), forked at its last iteration into
 /// the blob's config, which changes only the run's name and length, the pass weight and the
 /// σ schedule; the blob observes folded, as it was trained.
 #[test]
 fn the_folded_policy_is_the_committed_recipe_and_its_finish() {
     let fold1 = TrainConfig::load(&root().join("policies/stage1_fold/config_fold1.toml")).unwrap();
     let mut recipe =
-        TrainConfig::load(&root().join("host-trainer/configs/stage1_fold.toml")).unwrap();
+        TrainConfig::load(&root().join("host-trainer/configs/experiments/stage1_fold.toml"))
+            .unwrap();
     assert!(recipe.warm_start.is_none() && recipe.env.fold_mirror);
     recipe.run.name = fold1.run.name.clone();
     assert_eq!(recipe.hash(), fold1.hash());
@@ -239,8 +240,13 @@ fn shipped_jsonl<T: serde::de::DeserializeOwned>(name: &str, file: &str) -> Vec<
 }
 
 fn check_race(name: &str, config_name: &str) {
-    let (raw, config, iterations) =
-        shipped_blob(name, &format!("host-trainer/configs/{config_name}.toml"));
+    // The shipped pipeline's config, else the experiment's.
+    let path = ["host-trainer/configs", "host-trainer/configs/experiments"]
+        .map(|d| format!("{d}/{config_name}.toml"))
+        .into_iter()
+        .find(|p| root().join(p).is_file())
+        .unwrap_or_else(|| panic!("{config_name}: no config"));
+    let (raw, config, iterations) = shipped_blob(name, &path);
     assert!(
         config.run.keep_best,
         "{config_name}: the stage-2 runs keep the best"

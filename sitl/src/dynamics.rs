@@ -57,6 +57,53 @@ pub struct Preset {
     pub substeps: u32,
 }
 
+/// The dynamics presets by name ([`Preset`] holds their parameters).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PresetName {
+    /// The paper's effective dynamics (half the propeller force, as its simulator).
+    #[default]
+    Paper,
+    /// The full propeller force, no drag, no motor lag.
+    Nominal,
+    /// Nominal force, limited rpm, a 30 ms motor lag and linear drag.
+    Realistic,
+}
+
+impl PresetName {
+    /// Every preset, in the order the docs list them.
+    pub const ALL: [Self; 3] = [Self::Paper, Self::Nominal, Self::Realistic];
+
+    /// The preset's parameters.
+    pub fn preset(self) -> Preset {
+        match self {
+            Self::Paper => Preset::paper(),
+            Self::Nominal => Preset::nominal(),
+            Self::Realistic => Preset::realistic(),
+        }
+    }
+
+    /// Its name as configs and flags write it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Paper => "paper",
+            Self::Nominal => "nominal",
+            Self::Realistic => "realistic",
+        }
+    }
+}
+
+impl core::str::FromStr for PresetName {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Self::ALL
+            .into_iter()
+            .find(|p| p.name() == s)
+            .ok_or_else(|| format!("unknown preset '{s}' (paper, nominal, realistic)"))
+    }
+}
+
 impl Default for Preset {
     fn default() -> Self {
         Self::paper()
@@ -105,11 +152,9 @@ impl Preset {
         }
     }
 
-    /// The preset called `name` ([`crate::env::PresetName`]).
+    /// The preset called `name` ([`PresetName`]).
     pub fn by_name(name: &str) -> Option<Self> {
-        name.parse::<crate::env::PresetName>()
-            .ok()
-            .map(crate::env::PresetName::preset)
+        name.parse::<PresetName>().ok().map(PresetName::preset)
     }
 
     /// Propeller speed that holds hover (rpm).

@@ -19,7 +19,7 @@
 //!   propellers onto each other and keeps a drone that flies nose first flying nose first:
 //!   the image of a state the policy visits is a state it visits on the other half. (The
 //!   body's y-z reflection would also be a symmetry, but its images fly tail first, states
-//!   no flight reaches: run m1 in docs/TRAINING.md.)
+//!   no flight reaches: run m1 in docs/journal/stage1.md.)
 //! - body rates (a pseudo-vector): ω ↦ det(B)·B ω = (−ωx, ωy, −ωz);
 //! - motors: motor i's role passes to the motor at its mirror position (x, −y), which spins
 //!   the other way (so the yaw torque changes sign with the reflection, as it must).

@@ -555,58 +555,6 @@ fn a_replayed_spawn_is_the_state_after_a_gate_pass() {
     assert_eq!(fresh.observations(), start.as_slice());
 }
 
-/// `racing_line_fraction = 1`: every spawn that is not a stage-1 one is a node of the
-/// `paper` preset's optimal lap, moving as the optimum does there (the spawn speed does not
-/// overwrite its velocity); with 0 no spawn is, and a stage-1 draw still wins.
-#[test]
-fn racing_line_spawns_are_nodes_of_the_optimal_lap() {
-    use sitl::racing_line::{paper_nodes, paper_spawn};
-    let spec = ObservationSpec::paper(ObservationLayout::TimeTrial17);
-    let world = World::figure_eight(Preset::paper(), CrashRules::STAGE1);
-    let node_observations: Vec<Vec<f32>> = (0..paper_nodes())
-        .map(|i| {
-            let s = paper_spawn(i);
-            let gate = world.track.gate(s.target_gate);
-            let o = spec.observe(&s.state, &gate, &[0.0; 4], None).unwrap();
-            o.as_slice().to_vec()
-        })
-        .collect();
-    let on_line = |env: &VecEnv| {
-        env.observations()
-            .chunks_exact(OBS_DIM)
-            .filter(|o| node_observations.iter().any(|n| n.as_slice() == *o))
-            .count()
-    };
-    let along = |fraction: f32, stage1: f32| {
-        VecEnv::time_trial(EnvConfig {
-            spawn: SpawnMode::AlongTrack,
-            spawn_speed_mps: 8.0,
-            stage1_fraction: stage1,
-            racing_line_fraction: fraction,
-            random_initial_episode_length: false,
-            ..EnvConfig::paper_along_track(64, 5)
-        })
-    };
-    let env = along(1.0, 0.0);
-    assert_eq!(on_line(&env), 64);
-    // Spread over the lap: many distinct nodes among 64 draws of 240.
-    let mut distinct: Vec<&[f32]> = env.observations().chunks_exact(OBS_DIM).collect();
-    distinct.sort_by(|a, b| a.partial_cmp(b).unwrap());
-    distinct.dedup();
-    assert!(distinct.len() > 40, "{} distinct spawns", distinct.len());
-    assert_eq!(on_line(&along(0.0, 0.0)), 0);
-    // Half stage-1 spawns: the rest on the line.
-    let mixed = along(1.0, 0.5);
-    let start = VecEnv::time_trial(config(1)).observations().to_vec();
-    let stage1 = mixed
-        .observations()
-        .chunks_exact(OBS_DIM)
-        .filter(|o| *o == start.as_slice())
-        .count();
-    assert!(stage1 > 16 && stage1 < 48, "{stage1} stage-1 spawns of 64");
-    assert_eq!(on_line(&mixed) + stage1, 64);
-}
-
 /// `stage2_fraction = 1`: every time-trial spawn is the paper's stage-2 start, at rest
 /// (whatever the spawn speed) 2 m (the ego's) or 1 m (the opponent's) before its target gate
 /// on the gate's axis, both distances and every heading drawn; with 0 none is.

@@ -128,7 +128,6 @@ impl Default for PpoConfig {
             entropy_coef: 0.01,
             learning_rate: 1e-4,
             desired_kl: Some(0.01),
-            desired_kl_decay: None,
             max_grad_norm: 1.0,
             min_learning_rate: default_min_learning_rate(),
             max_learning_rate: default_max_learning_rate(),
@@ -138,14 +137,12 @@ impl Default for PpoConfig {
             init_std: 1.0,
             init_hover: false,
             update: UpdateKind::Fused,
-            mirror_augmentation: false,
-            mirror_teacher: None,
         }
     }
 }
 
 impl Default for WarmStart {
-    /// The stage-1 student's (`configs/stage1_finetune.toml`, `configs/stage1_imitation.toml`): 40 DAgger rounds of 50 steps of the
+    /// The stage-1 student's (`configs/experiments/stage1_finetune.toml`, `configs/experiments/stage1_imitation.toml`): 40 DAgger rounds of 50 steps of the
     /// classical baseline at 9 m/s, 3 epochs of minibatches of 2,048 over the last 400,000
     /// samples at lr 1e-3, the student's actions with σ 0.1 noise, then 30 critic-only
     /// iterations; no refinement, no round selection.

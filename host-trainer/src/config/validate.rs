@@ -174,16 +174,6 @@ fn ppo(c: &TrainConfig) -> Result<(), ConfigError> {
             return bad("ppo.max_std must be finite, positive and at least init_std");
         }
     }
-    if let Some(d) = &p.desired_kl_decay {
-        let Some(target) = p.desired_kl else {
-            return bad("ppo.desired_kl_decay lowers ppo.desired_kl, which is not set");
-        };
-        if !(d.final_kl > 0.0 && d.final_kl <= target && d.from_iteration < d.to_iteration) {
-            return bad(
-                "ppo.desired_kl_decay: final_kl must be in (0, desired_kl] and from_iteration < to_iteration",
-            );
-        }
-    }
     if let Some(d) = &p.max_std_decay {
         let Some(max) = p.max_std else {
             return bad("ppo.max_std_decay lowers ppo.max_std, which is not set");
@@ -194,45 +184,10 @@ fn ppo(c: &TrainConfig) -> Result<(), ConfigError> {
             );
         }
     }
-    if p.mirror_augmentation && ('E'..='G').contains(&c.run.row) {
-        return bad(format!(
-            "ppo.mirror_augmentation trains feed-forward rows (A-D); row {} is recurrent",
-            c.run.row
-        ));
-    }
-    if c.env.fold_mirror {
-        if p.mirror_augmentation || p.mirror_teacher.is_some() {
-            return bad(
-                "env.fold_mirror already flies both halves as one: ppo.mirror_augmentation and ppo.mirror_teacher would train on images of images",
-            );
-        }
-        if c.warm_start.is_some() {
-            return bad(
-                "env.fold_mirror: a warm start's teacher labels the world's motors, not the folded ones (not supported)",
-            );
-        }
-    }
-    if let Some(t) = &p.mirror_teacher {
-        if ('E'..='G').contains(&c.run.row) {
-            return bad(format!(
-                "ppo.mirror_teacher trains feed-forward rows (A-D); row {} is recurrent",
-                c.run.row
-            ));
-        }
-        if p.mirror_augmentation {
-            return bad(
-                "ppo.mirror_teacher and ppo.mirror_augmentation both train on the mirror images: choose one",
-            );
-        }
-        if !(t.coef.is_finite() && t.coef > 0.0) {
-            return bad("ppo.mirror_teacher.coef must be positive");
-        }
-        let gates = firmware_core::track::Track::figure_eight().len();
-        if t.gates.is_empty() || t.gates.iter().any(|&g| g >= gates) {
-            return bad(format!(
-                "ppo.mirror_teacher.gates must name teaching gates among 0..{gates}"
-            ));
-        }
+    if c.env.fold_mirror && c.warm_start.is_some() {
+        return bad(
+            "env.fold_mirror: a warm start's teacher labels the world's motors, not the folded ones (not supported)",
+        );
     }
     if p.critic_learning_rate
         .is_some_and(|r| !(r.is_finite() && r > 0.0))

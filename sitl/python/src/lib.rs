@@ -168,7 +168,7 @@ impl RustVecEnv {
     #[pyo3(signature = (*, task, num_envs, preset, seed, spawn, episode_s,
         random_initial_episode_length, opponent, competition, competition_weight, row,
         velocity_scale_mps, spawn_speed_mps, stage1_fraction, replay_fraction=0.0,
-        racing_line_fraction=0.0, reward_weights=None, stage2_fraction=0.0, fold_mirror=false))]
+        reward_weights=None, stage2_fraction=0.0, fold_mirror=false))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         task: &str,
@@ -186,7 +186,6 @@ impl RustVecEnv {
         spawn_speed_mps: f32,
         stage1_fraction: f32,
         replay_fraction: f32,
-        racing_line_fraction: f32,
         reward_weights: Option<std::collections::HashMap<String, f32>>,
         stage2_fraction: f32,
         fold_mirror: bool,
@@ -234,7 +233,6 @@ impl RustVecEnv {
             stage1_fraction,
             stage2_fraction,
             replay_fraction,
-            racing_line_fraction,
             fold_mirror,
             layout: row.observation_layout(),
             reward: reward_weights_from(reward_weights.unwrap_or_default())?,

@@ -300,7 +300,7 @@ def test_race_events():
         ({"row": "G"}, ValueError, "row G"),
         ({"row": "Z"}, ValueError, "row 'Z'"),
         ({"replay_fraction": 1.5}, ValueError, "replay_fraction: 1.5"),
-        ({"racing_line_fraction": -0.1}, ValueError, "racing_line_fraction: -0.1"),
+        ({"stage2_fraction": -0.1}, ValueError, "stage2_fraction: -0.1"),
         ({"reward_weights": {"crsh": 1.0}}, ValueError, "unknown term 'crsh'"),
         ({"reward_weights": {"crash": -1.0}}, ValueError, "reward.crash: -1"),
         ({"reward_weights": {"pass": float("inf")}}, ValueError, "reward.pass: inf"),
@@ -413,18 +413,6 @@ def test_take_stats_counts_what_step_info_reports():
     assert (s["steps"], s["gates_passed"], s["crashes"]) == (steps, gates, crashes)
     assert s["progress"] == pytest.approx(progress, rel=1e-9, abs=1e-12)
     assert env._env.take_stats()["steps"] == 0
-
-
-def test_racing_line_spawns_move_as_the_optimal_lap():
-    """``racing_line_fraction=1``: every spawn is a node of the optimal lap, at 7-14 m/s
-    (the observation's own-velocity block, in the body frame, at scale 12 m/s)."""
-    env = overtake.make_vec_env(num_envs=32, seed=1, racing_line_fraction=1.0, velocity_scale_mps=12.0)
-    obs, _ = env.reset(seed=1)
-    speed = np.linalg.norm(obs[:, 7:10], axis=1) * 12.0
-    assert speed.min() > 6.5 and speed.max() < 14.5, speed
-    still = overtake.make_vec_env(num_envs=32, seed=1, velocity_scale_mps=12.0)
-    obs, _ = still.reset(seed=1)
-    assert np.abs(obs[:, 7:10]).max() == 0.0  # along the track, at rest
 
 
 def test_defaults_are_the_shipped_environment():

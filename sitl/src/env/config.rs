@@ -11,7 +11,7 @@
 //! `[run]` picks [`EnvConfig::layout`] and the run's seed is [`EnvConfig::seed`].
 
 use super::reward::{Competition, RewardWeights};
-use crate::dynamics::Preset;
+use crate::dynamics::{Preset, PresetName};
 use crate::referee::SpawnMode;
 use firmware_core::observation::{ObservationLayout, ObservationSpec};
 use serde::{Deserialize, Serialize};
@@ -26,53 +26,6 @@ pub const MAX_SPAWN_SPEED_MPS: f32 = 20.0;
 
 /// The paper's divisor of the own body-frame velocity in the observation (m/s).
 pub const PAPER_VELOCITY_SCALE_MPS: f32 = 3.0;
-
-/// The dynamics presets by name (`sitl::dynamics::Preset` holds their parameters).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum PresetName {
-    /// The paper's effective dynamics (half the propeller force, as its simulator).
-    #[default]
-    Paper,
-    /// The full propeller force, no drag, no motor lag.
-    Nominal,
-    /// Nominal force, limited rpm, a 30 ms motor lag and linear drag.
-    Realistic,
-}
-
-impl PresetName {
-    /// Every preset, in the order the docs list them.
-    pub const ALL: [Self; 3] = [Self::Paper, Self::Nominal, Self::Realistic];
-
-    /// The preset's parameters.
-    pub fn preset(self) -> Preset {
-        match self {
-            Self::Paper => Preset::paper(),
-            Self::Nominal => Preset::nominal(),
-            Self::Realistic => Preset::realistic(),
-        }
-    }
-
-    /// Its name as configs and flags write it.
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Paper => "paper",
-            Self::Nominal => "nominal",
-            Self::Realistic => "realistic",
-        }
-    }
-}
-
-impl core::str::FromStr for PresetName {
-    type Err = String;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        Self::ALL
-            .into_iter()
-            .find(|p| p.name() == s)
-            .ok_or_else(|| format!("unknown preset '{s}' (paper, nominal, realistic)"))
-    }
-}
 
 /// What the envs fly: alone against the clock, or a race against a frozen opponent.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -184,11 +137,6 @@ pub struct EnvConfig {
     /// 2023's "states from successful gate passes". Paper: 0. Default 0 (left out at 0).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub replay_fraction: f32,
-    /// Share of the other time-trial respawns (neither replayed nor stage-1 nor stage-2) on
-    /// the `paper` preset's time-optimal lap ([`crate::racing_line`]). Paper: 0. Default 0
-    /// (left out at 0).
-    #[serde(default, skip_serializing_if = "is_zero")]
-    pub racing_line_fraction: f32,
     /// Fold the track onto one half by its mirror symmetry (`firmware_core::mirror`): steps
     /// flying to the mirrored half's gates (g3-g5) observe their mirror image and fly the
     /// image's action renumbered back. Recorded in the blob (observation pipeline version
@@ -260,7 +208,6 @@ impl EnvConfig {
             stage1_fraction: 0.0,
             stage2_fraction: 0.0,
             replay_fraction: 0.0,
-            racing_line_fraction: 0.0,
             fold_mirror: false,
             layout: ObservationLayout::TimeTrial17,
             reward: RewardWeights::default(),
@@ -433,7 +380,6 @@ impl EnvConfig {
             ("stage1_fraction", self.stage1_fraction),
             ("stage2_fraction", self.stage2_fraction),
             ("replay_fraction", self.replay_fraction),
-            ("racing_line_fraction", self.racing_line_fraction),
         ] {
             if !(0.0..=1.0).contains(&share) {
                 return refuse(field, format!("{share}: expected a share in [0, 1]"));

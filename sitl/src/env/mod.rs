@@ -36,9 +36,10 @@ mod config;
 pub mod reward;
 mod spawn;
 
+pub use crate::dynamics::PresetName;
 pub use config::{
-    EnvConfig, EnvConfigError, MAX_ENVS, MAX_SPAWN_SPEED_MPS, PAPER_VELOCITY_SCALE_MPS, PresetName,
-    RaceConfig, Task,
+    EnvConfig, EnvConfigError, MAX_ENVS, MAX_SPAWN_SPEED_MPS, PAPER_VELOCITY_SCALE_MPS, RaceConfig,
+    Task,
 };
 pub use reward::{Competition, RewardTerms, RewardWeights, dense_competition};
 use reward::{Rewards, StepOutcome};
@@ -379,7 +380,6 @@ impl VecEnv {
             stage1_fraction: self.config.stage1_fraction,
             stage2_fraction: self.config.stage2_fraction,
             replay_fraction: self.config.replay_fraction,
-            racing_line_fraction: self.config.racing_line_fraction,
             race: self.race.is_some(),
         }
     }
@@ -479,9 +479,10 @@ impl VecEnv {
 
     /// One control step of every env: `actions` is `num_envs × 4`, row-major, unclipped (the
     /// policy's samples); they are clipped to [−1, 1] before the motors and the reward. A
-    /// non-finite component (NaN, ±inf) flies as 0, as the flight controller does, and is
-    /// counted in [`EnvStats::nonfinite_actions`]. An action slice of the wrong length is
-    /// refused and nothing moves.
+    /// non-finite component (NaN, ±inf) flies as 0 and is counted in
+    /// [`EnvStats::nonfinite_actions`] (the flight controller is stricter: a non-finite policy
+    /// output stops its motors). An action slice of the wrong length is refused and nothing
+    /// moves.
     pub fn step(&mut self, actions: &[f32]) -> Result<(), ActionShapeError> {
         if actions.len() != self.slots.len() * ACTION_DIM {
             return Err(ActionShapeError {

@@ -91,7 +91,7 @@ pub enum Competition {
     /// `tanh(0.1 · lead)` every step, `lead` the ego's progress along the track minus the
     /// opponent's (m, as the referee measures overtakes). Not in the paper: eq. 6 measures the
     /// opponent along the ego's body x, which an ego can earn by facing away from the
-    /// opponent instead of racing (docs/TRAINING.md, s2-g3); this form pays only for being
+    /// opponent instead of racing (docs/journal/stage2.md, s2-g3); this form pays only for being
     /// ahead on the track.
     Lead,
 }

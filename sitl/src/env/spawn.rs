@@ -2,7 +2,6 @@
 //! it replays (docs/DESIGN.md "Spawns").
 
 use super::Slot;
-use crate::racing_line;
 use crate::referee::{SpawnMode, TrackProgress};
 use crate::world::{Drone, World};
 use firmware_core::math::Vec3;
@@ -42,7 +41,6 @@ pub(super) struct SpawnRule {
     pub(super) stage1_fraction: f32,
     pub(super) stage2_fraction: f32,
     pub(super) replay_fraction: f32,
-    pub(super) racing_line_fraction: f32,
     pub(super) race: bool,
 }
 
@@ -53,9 +51,8 @@ pub(super) struct SpawnRule {
 /// action zeroed. Otherwise, with probability `replay_fraction`, the state after one of the
 /// env's recent gate passes, with that step's previous action; and of the spawns that are
 /// neither replayed nor stage-1, a share `stage2_fraction` is the ego's or the opponent's
-/// stage-2 spawn (at rest), and of the rest a share `racing_line_fraction` is a random node
-/// of the time-optimal lap (moving as the optimum does there). A share of 0 draws no random
-/// number, so configs without it keep their streams.
+/// stage-2 spawn (at rest). A share of 0 draws no random number, so configs without it keep
+/// their streams.
 pub(super) fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut Slot) {
     if !rule.race && rule.replay_fraction > 0.0 && slot.rng.random::<f32>() < rule.replay_fraction {
         if let Some((drone, previous_action)) = slot.passes.draw(&mut slot.rng) {
@@ -73,16 +70,8 @@ pub(super) fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule,
         && !stage1
         && rule.stage2_fraction > 0.0
         && slot.rng.random::<f32>() < rule.stage2_fraction;
-    let on_line = !rule.race
-        && !stage1
-        && !stage2
-        && rule.racing_line_fraction > 0.0
-        && slot.rng.random::<f32>() < rule.racing_line_fraction;
     let mode = if stage1 { SpawnMode::Stage1 } else { rule.mode };
-    let [mut spawn, opponent] = if on_line {
-        let s = racing_line::paper_spawn(slot.rng.random_range(0..racing_line::paper_nodes()));
-        [s, s]
-    } else if stage2 {
+    let [mut spawn, opponent] = if stage2 {
         let [ego, opponent] = SpawnMode::Stage2.draw(&world.track, line, &mut slot.rng);
         let s = if slot.rng.random::<bool>() {
             ego
@@ -93,7 +82,7 @@ pub(super) fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule,
     } else {
         mode.draw(&world.track, line, &mut slot.rng)
     };
-    if rule.max_speed_mps > 0.0 && !stage1 && !stage2 && !on_line && !rule.race {
+    if rule.max_speed_mps > 0.0 && !stage1 && !stage2 && !rule.race {
         let speed = slot.rng.random_range(0.0..rule.max_speed_mps);
         let forward = spawn.state.attitude.rotate(Vec3::new(1.0, 0.0, 0.0));
         spawn.state.velocity_mps = forward.scale(speed);

@@ -49,7 +49,6 @@ _CURRICULUM = (
     "stage1_fraction",
     "stage2_fraction",
     "replay_fraction",
-    "racing_line_fraction",
 )
 
 #: A policy's observation layout by its observation size (rows C-G share the 30 values).
@@ -74,7 +73,6 @@ def make_vec_env(
     stage1_fraction: float | None = None,
     stage2_fraction: float | None = None,
     replay_fraction: float | None = None,
-    racing_line_fraction: float | None = None,
     reward_weights: dict[str, float] | None = None,
     fold_mirror: bool | None = None,
     policy: str | os.PathLike[str] | Policy | None = None,
@@ -90,7 +88,7 @@ def make_vec_env(
     shipped config's**, on purpose:
 
     - the training curriculum (``spawn_speed_mps``, ``stage1_fraction``,
-      ``stage2_fraction``, ``replay_fraction``, ``racing_line_fraction``) defaults to 0, the
+      ``stage2_fraction``, ``replay_fraction``) defaults to 0, the
       paper's: it changes where episodes start, which surprises anyone flying a policy
       rather than training one;
     - the reward weights default to the paper's (``crash`` 5; stage1.toml trains with 1).
@@ -126,8 +124,6 @@ def make_vec_env(
             gate), where a stage-1 policy starts as stage 2's opponent.
         replay_fraction: time trial: share of respawns from the state right after one of
             the env's own recent gate passes (when it has one; Song et al. 2023).
-        racing_line_fraction: time trial: share of the other respawns (neither replayed nor
-            at the fixed start nor stage-2) on the ``paper`` preset's time-optimal lap.
         reward_weights: the reward's weights that differ from the paper's, by term name
             (``progress`` 0.5, ``command`` 0.0005, ``smoothness`` 0.0002, ``pass`` 1,
             ``crash`` 5; e.g. ``{"crash": 1.0}``, as ``[reward]`` in host-trainer's configs).
@@ -158,7 +154,6 @@ def make_vec_env(
         "stage1_fraction": stage1_fraction,
         "stage2_fraction": stage2_fraction,
         "replay_fraction": replay_fraction,
-        "racing_line_fraction": racing_line_fraction,
         "fold_mirror": fold_mirror,
     }
     if policy is not None:
@@ -220,8 +215,8 @@ class OvertakeVecEnv(VectorEnv):
 
     **Actions**: float32 ``[num_envs, 4]`` (``TypeError`` for another dtype, ``ValueError``
     for another shape; nothing is stepped then). They are clipped to [-1, 1] before the motors
-    and the reward, and a non-finite value (NaN, ±inf) becomes 0, as the flight controller
-    does: such actions are accepted, not refused, and counted
+    and the reward, and a non-finite value (NaN, ±inf) becomes 0 (the flight controller is
+    stricter: it stops the motors): such actions are accepted, not refused, and counted
     (``take_stats()["nonfinite_actions"]``; a learner that sees any has diverged).
 
     **Policies**: :meth:`check_policy` refuses a :class:`Policy` that observes otherwise
