@@ -1,285 +1,98 @@
-//! Argument parsing and dispatch (plain `std`, no parser crate).
+//! The command line (clap derive) and its dispatch to the subcommands' modules.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use firmware_core::blob::{WeightDtype, convert_bytes};
-use firmware_core::policy::TableRow;
+use clap::{Parser, Subcommand};
 
-use crate::{cortex_m, curves, figure, inspect, size};
+use crate::{blobs, cortex_m, curves, figure, inspect, size};
 
-fn parse_figure(args: &[&str]) -> Result<Command, String> {
-    let (mut trace, mut episode, mut overtake, mut window_s, mut out) =
-        (None, None, None, 8.0f32, PathBuf::from("overtake.svg"));
-    let mut it = args.iter();
-    while let Some(flag) = it.next() {
-        let value = it.next().ok_or_else(|| format!("{flag} needs a value"))?;
-        let index = |v: &str| {
-            v.parse::<usize>()
-                .map_err(|_| format!("{flag} takes a non-negative integer, not `{v}`"))
-        };
-        match *flag {
-            "--trace" => trace = Some(PathBuf::from(value)),
-            "--episode" => episode = Some(index(value)?),
-            "--overtake" => overtake = Some(index(value)?),
-            "--window-s" => {
-                window_s = match value.parse::<f32>() {
-                    Ok(v) if v > 0.0 && v <= 60.0 => v,
-                    _ => {
-                        return Err(format!(
-                            "--window-s takes seconds in (0, 60], not `{value}`"
-                        ));
-                    }
-                }
-            }
-            "--out" => out = PathBuf::from(value),
-            other => return Err(format!("overtake-figure: unknown flag `{other}`")),
-        }
-    }
-    Ok(Command::OvertakeFigure(figure::FigureArgs {
-        trace: trace.ok_or("overtake-figure needs --trace FILE (from `sitl race --trace FILE`)")?,
-        episode,
-        overtake,
-        window_s,
-        out,
-    }))
+/// The command line: `cargo run -p tools -- <subcommand>`.
+#[derive(Debug, Parser)]
+#[command(
+    name = "tools",
+    bin_name = "cargo run -p tools --",
+    version,
+    about = "Overtake's command-line helpers: blob inspector and converter, overtake figure, \
+             learning curves, firmware size report, Cortex-M test runner"
+)]
+pub struct Cli {
+    /// What to do.
+    #[command(subcommand)]
+    pub command: Command,
 }
 
-fn parse_curves(args: &[&str]) -> Result<Command, String> {
-    let (mut runs, mut out) = (Vec::new(), PathBuf::from("learning_curves.svg"));
-    let mut it = args.iter();
-    while let Some(flag) = it.next() {
-        let value = it.next().ok_or_else(|| format!("{flag} needs a value"))?;
-        match *flag {
-            "--run" => {
-                let (dir, label) = match value.split_once('=') {
-                    Some((d, l)) if !d.is_empty() && !l.is_empty() => (d, l.to_string()),
-                    Some(_) => return Err(format!("--run takes DIR or DIR=LABEL, not `{value}`")),
-                    None => (*value, value.to_string()),
-                };
-                runs.push((PathBuf::from(dir), label));
-            }
-            "--out" => out = PathBuf::from(value),
-            other => return Err(format!("learning-curves: unknown flag `{other}`")),
-        }
-    }
-    if runs.is_empty() {
-        return Err("learning-curves needs at least one --run DIR[=LABEL]".into());
-    }
-    Ok(Command::LearningCurves(curves::CurvesArgs { runs, out }))
-}
-
-fn parse_synth(args: &[&str]) -> Result<Command, String> {
-    let (mut row, mut seed, mut out) = (None, 1u64, None);
-    let mut it = args.iter();
-    while let Some(flag) = it.next() {
-        let value = it.next().ok_or_else(|| format!("{flag} needs a value"))?;
-        match *flag {
-            "--row" => {
-                let mut letters = value.chars();
-                row = Some(
-                    match (letters.next(), letters.next()) {
-                        (Some(c), None) => TableRow::from_letter(c),
-                        _ => None,
-                    }
-                    .ok_or_else(|| format!("--row takes A to G, not `{value}`"))?,
-                )
-            }
-            "--seed" => {
-                seed = value
-                    .parse()
-                    .map_err(|_| format!("--seed takes an integer, not `{value}`"))?
-            }
-            "--out" => out = Some(PathBuf::from(value)),
-            other => return Err(format!("synth-blob: unknown flag `{other}`")),
-        }
-    }
-    Ok(Command::SynthBlob {
-        row: row.ok_or("synth-blob needs --row")?,
-        seed,
-        out: out.ok_or("synth-blob needs --out FILE")?,
-    })
-}
-
-fn parse_convert(args: &[&str]) -> Result<Command, String> {
-    let (mut dtype, mut input, mut out) = (None, None, None);
-    let mut it = args.iter();
-    while let Some(flag) = it.next() {
-        let value = it.next().ok_or_else(|| format!("{flag} needs a value"))?;
-        match *flag {
-            "--dtype" => {
-                dtype = Some(
-                    WeightDtype::from_name(value)
-                        .ok_or_else(|| format!("--dtype takes f32 or i8, not `{value}`"))?,
-                )
-            }
-            "--in" => input = Some(PathBuf::from(value)),
-            "--out" => out = Some(PathBuf::from(value)),
-            other => return Err(format!("convert: unknown flag `{other}`")),
-        }
-    }
-    Ok(Command::Convert {
-        dtype: dtype.ok_or("convert needs --dtype f32|i8")?,
-        input: input.ok_or("convert needs --in BLOB")?,
-        out: out.ok_or("convert needs --out BLOB")?,
-    })
-}
-
-/// Writes `bytes` to `out` through a temporary file (`sitl::files::write_atomically`), so a
-/// partial file never has the name.
-fn write_atomically(out: &std::path::Path, bytes: &[u8]) -> crate::error::Result<()> {
-    sitl::files::write_atomically(out, bytes)
-        .map_err(|e| crate::error::Error::new(format!("writing {}: {e}", out.display())))
-}
-
-fn convert(
-    dtype: WeightDtype,
-    input: &std::path::Path,
-    out: &std::path::Path,
-) -> crate::error::Result<ExitCode> {
-    let bytes = std::fs::read(input)
-        .map_err(|e| crate::error::Error::new(format!("{}: {e}", input.display())))?;
-    let converted = convert_bytes(&bytes, dtype)
-        .map_err(|e| crate::error::Error::new(format!("{}: {e}", input.display())))?;
-    write_atomically(out, &converted)?;
-    println!(
-        "{} ({} bytes) -> {} ({} bytes, {}): {:.2}x",
-        input.display(),
-        bytes.len(),
-        out.display(),
-        converted.len(),
-        dtype.name(),
-        bytes.len() as f64 / converted.len() as f64
-    );
-    Ok(ExitCode::SUCCESS)
-}
-
-fn synth_blob(row: TableRow, seed: u64, out: &std::path::Path) -> crate::error::Result<ExitCode> {
-    let bytes = firmware_core::synthetic::blob(row, seed)
-        .map_err(|e| crate::error::Error::new(format!("encoding the blob: {e}")))?;
-    write_atomically(out, &bytes)?;
-    println!(
-        "wrote {} ({} bytes): row {}, seed {seed}, synthetic random weights (never for flight)",
-        out.display(),
-        bytes.len(),
-        row.letter()
-    );
-    Ok(ExitCode::SUCCESS)
-}
-
-/// The help text.
-pub const USAGE: &str = "\
-usage: cargo run -p tools -- <subcommand>
-
-subcommands:
-  inspect <blob>            decode a weight blob and print its header (exit 1 on a defect)
-  size-report               build the Cortex-M4 size images (rows A and G in f32, G in
-                            int8 linked for the STM32F405; profile `firmware`) and report
-                            flash and RAM against an STM32F405
-  convert --dtype f32|i8 --in BLOB --out BLOB
-                            re-encode a blob: f32 -> i8 quantises every matrix row
-                            (symmetric, f32 scales); i8 -> f32 writes the dequantised weights
-  synth-blob --row X [--seed N] --out FILE
-                            write a blob of Table 1 row X (A-G) with seeded random
-                            weights: for trying the tools, never for flight
-  overtake-figure --trace FILE [--episode N] [--overtake K] [--window-s S] [--out F.svg]
-                            draw an overtake of a recorded race from above (the paper's
-                            Fig. 3): the ego's and opponent's paths over S seconds (8)
-                            around it; FILE from `sitl race --trace` or `sitl eval --trace`
-  learning-curves --run DIR[=LABEL] ... [--out F.svg]
-                            training runs on one page (metrics.jsonl of `host-trainer
-                            train` or tools/train_rslrl.py): referee success and lap,
-                            rollout gates and crashes, σ against samples and wall-clock,
-                            beside the authors' run (no gate in 410 M samples)
-  cortex-m test             build and run the Cortex-M4 test image under QEMU
-  cortex-m icount           instructions per Controller::step on the emulated Cortex-M4
-                            (QEMU -icount shift=0); --breakdown: per layer and kernel
-  help                      print this text";
-
-/// A parsed command line.
-#[derive(Debug, Clone, PartialEq)]
+/// A subcommand.
+#[derive(Debug, Clone, PartialEq, Subcommand)]
 pub enum Command {
-    /// Print the usage.
-    Help,
-    /// Inspect a blob file.
-    Inspect(PathBuf),
-    /// The size report.
+    /// Decode a weight blob and print its header (exit 1 on a defect).
+    ///
+    /// A defective blob prints the typed error of firmware-core (bad magic, version,
+    /// truncation, CRC...).
+    Inspect {
+        /// The blob file.
+        #[arg(value_name = "BLOB")]
+        blob: PathBuf,
+    },
+    /// Build the Cortex-M4 size images and report their flash and RAM (bytes).
+    ///
+    /// The images: rows A and G in f32, and G in int8 linked against the STM32F405's memory
+    /// map (profile `firmware`); their flash and RAM are read from the ELF and set against an
+    /// STM32F405 (1 MB flash; 128 KB SRAM + 64 KB CCM).
     SizeReport,
-    /// Write a synthetic blob.
-    SynthBlob {
-        /// Table 1 row.
-        row: TableRow,
-        /// Weight seed.
-        seed: u64,
-        /// Output file.
-        out: PathBuf,
-    },
-    /// Re-encode a blob in another dtype.
-    Convert {
-        /// The output dtype.
-        dtype: WeightDtype,
-        /// Input blob.
-        input: PathBuf,
-        /// Output blob.
-        out: PathBuf,
-    },
-    /// Draw an overtake from a recorded race.
+    /// Re-encode a blob in another weight dtype.
+    ///
+    /// f32 -> i8 quantises every matrix row (symmetric, f32 scales; biases stay f32);
+    /// i8 -> f32 writes the dequantised weights.
+    Convert(blobs::ConvertArgs),
+    /// Write a Table 1 row's blob with seeded random weights (never for flight).
+    ///
+    /// For trying the tools (inspect, convert, the Cortex-M images) without a trained policy.
+    SynthBlob(blobs::SynthArgs),
+    /// Draw an overtake of a recorded race from above (the paper's Fig. 3).
+    ///
+    /// The ego's and the opponent's paths over a window of seconds around the overtake, with
+    /// the gates, the centreline and each second marked on both paths.
     OvertakeFigure(figure::FigureArgs),
-    /// Draw training runs' learning curves on one page.
+    /// Draw training runs' learning curves on one page (SVG).
+    ///
+    /// Reads each run's `metrics.jsonl` (of `host-trainer train` or tools/train_rslrl.py):
+    /// referee success and best lap (s), rollout gates and crashes per second and the
+    /// policy's σ, against env-steps and wall-clock (s), beside the authors' run (no gate in
+    /// 410 M env-steps).
     LearningCurves(curves::CurvesArgs),
-    /// Run the QEMU test image.
-    CortexMTest,
-    /// Run the instruction-count bench (`breakdown`: the per-layer image).
-    CortexMIcount {
-        /// Run `icount-breakdown` instead of `icount`.
+    /// Run the Cortex-M4 images of tools/cortex-m-tests under QEMU (docs/cortex-m.md).
+    #[command(subcommand)]
+    CortexM(CortexM),
+}
+
+/// A `cortex-m` subcommand.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Subcommand)]
+pub enum CortexM {
+    /// Build and run the Cortex-M4 test image under QEMU (mps2-an386); exit with its status.
+    Test,
+    /// Count the instructions per Controller::step on the emulated Cortex-M4.
+    ///
+    /// QEMU with -icount shift=0 (one instruction per virtual nanosecond), profile
+    /// `firmware`; rows A and G, f32 and int8.
+    Icount {
+        /// Run the icount-breakdown image instead: instructions per layer and kernel.
+        #[arg(long)]
         breakdown: bool,
     },
 }
 
-/// Parses the arguments after the program name.
-pub fn parse(args: &[String]) -> Result<Command, String> {
-    let args: Vec<&str> = args.iter().map(String::as_str).collect();
-    match args.as_slice() {
-        [] => Err("no subcommand given".into()),
-        ["help" | "-h" | "--help"] => Ok(Command::Help),
-        ["inspect", path] if !path.starts_with('-') => Ok(Command::Inspect(PathBuf::from(path))),
-        ["inspect", ..] => Err("inspect takes exactly one blob file".into()),
-        ["size-report"] => Ok(Command::SizeReport),
-        ["size-report", ..] => Err("size-report takes no arguments".into()),
-        ["synth-blob", rest @ ..] => parse_synth(rest),
-        ["convert", rest @ ..] => parse_convert(rest),
-        ["overtake-figure", rest @ ..] => parse_figure(rest),
-        ["learning-curves", rest @ ..] => parse_curves(rest),
-        ["cortex-m", "test"] => Ok(Command::CortexMTest),
-        ["cortex-m", "icount"] => Ok(Command::CortexMIcount { breakdown: false }),
-        ["cortex-m", "icount", "--breakdown"] => Ok(Command::CortexMIcount { breakdown: true }),
-        ["cortex-m", ..] => Err("cortex-m takes `test`, `icount` or `icount --breakdown`".into()),
-        [other, ..] => Err(format!("unknown subcommand `{other}`")),
-    }
-}
-
-/// Runs the command line; the exit code is the command's (2 for a usage error).
-pub fn main(args: Vec<String>) -> ExitCode {
-    let command = match parse(&args) {
-        Ok(c) => c,
-        Err(e) => {
-            eprintln!("error: {e}\n\n{USAGE}");
-            return ExitCode::from(2);
-        }
-    };
+/// Runs `command`; the exit code is the command's, 1 after printing a tool's error.
+pub fn run(command: &Command) -> ExitCode {
     let result = match command {
-        Command::Help => {
-            println!("{USAGE}");
-            Ok(ExitCode::SUCCESS)
-        }
-        Command::Inspect(path) => inspect::run(&path),
+        Command::Inspect { blob } => inspect::run(blob),
         Command::SizeReport => size::run(),
-        Command::SynthBlob { row, seed, out } => synth_blob(row, seed, &out),
-        Command::Convert { dtype, input, out } => convert(dtype, &input, &out),
-        Command::OvertakeFigure(args) => figure::run(&args),
-        Command::LearningCurves(args) => curves::run(&args),
-        Command::CortexMTest => cortex_m::run_tests(),
-        Command::CortexMIcount { breakdown } => cortex_m::run_icount(breakdown),
+        Command::Convert(args) => blobs::convert(args),
+        Command::SynthBlob(args) => blobs::synth_blob(args),
+        Command::OvertakeFigure(args) => figure::run(args),
+        Command::LearningCurves(args) => curves::run(args),
+        Command::CortexM(CortexM::Test) => cortex_m::run_tests(),
+        Command::CortexM(CortexM::Icount { breakdown }) => cortex_m::run_icount(*breakdown),
     };
     result.unwrap_or_else(|e| {
         eprintln!("error: {e}");
@@ -287,36 +100,49 @@ pub fn main(args: Vec<String>) -> ExitCode {
     })
 }
 
+/// Parses the process's arguments and runs them: clap prints usage errors and exits 2
+/// (`--help`, `help` and `--version` exit 0).
+pub fn main() -> ExitCode {
+    run(&Cli::parse().command)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use clap::CommandFactory;
+    use firmware_core::blob::WeightDtype;
+    use firmware_core::policy::TableRow;
 
-    fn args(s: &[&str]) -> Vec<String> {
-        s.iter().map(|a| a.to_string()).collect()
+    fn parse(args: &[&str]) -> std::result::Result<Command, clap::Error> {
+        Cli::try_parse_from(std::iter::once("tools").chain(args.iter().copied())).map(|c| c.command)
+    }
+
+    #[test]
+    fn the_command_line_is_well_formed() {
+        Cli::command().debug_assert();
     }
 
     #[test]
     fn parses_every_subcommand() {
+        let ok = |args: &[&str]| parse(args).expect("parses");
         assert_eq!(
-            parse(&args(&["inspect", "x.bin"])),
-            Ok(Command::Inspect("x.bin".into()))
+            ok(&["inspect", "x.bin"]),
+            Command::Inspect {
+                blob: "x.bin".into()
+            }
         );
-        assert_eq!(parse(&args(&["size-report"])), Ok(Command::SizeReport));
+        assert_eq!(ok(&["size-report"]), Command::SizeReport);
+        assert_eq!(ok(&["cortex-m", "test"]), Command::CortexM(CortexM::Test));
         assert_eq!(
-            parse(&args(&["cortex-m", "test"])),
-            Ok(Command::CortexMTest)
+            ok(&["cortex-m", "icount"]),
+            Command::CortexM(CortexM::Icount { breakdown: false })
         );
         assert_eq!(
-            parse(&args(&["cortex-m", "icount"])),
-            Ok(Command::CortexMIcount { breakdown: false })
+            ok(&["cortex-m", "icount", "--breakdown"]),
+            Command::CortexM(CortexM::Icount { breakdown: true })
         );
         assert_eq!(
-            parse(&args(&["cortex-m", "icount", "--breakdown"])),
-            Ok(Command::CortexMIcount { breakdown: true })
-        );
-        assert_eq!(parse(&args(&["--help"])), Ok(Command::Help));
-        assert_eq!(
-            parse(&args(&[
+            ok(&[
                 "learning-curves",
                 "--run",
                 "runs/a=ours, seed 1",
@@ -324,83 +150,129 @@ mod tests {
                 "runs/b",
                 "--out",
                 "c.svg"
-            ])),
-            Ok(Command::LearningCurves(curves::CurvesArgs {
+            ]),
+            Command::LearningCurves(curves::CurvesArgs {
                 runs: vec![
                     ("runs/a".into(), "ours, seed 1".into()),
                     ("runs/b".into(), "runs/b".into())
                 ],
                 out: "c.svg".into()
-            }))
+            })
         );
-        assert!(parse(&args(&["learning-curves"])).is_err());
-        assert!(parse(&args(&["learning-curves", "--run", "=x"])).is_err());
         assert_eq!(
-            parse(&args(&["synth-blob", "--row", "g", "--out", "g.blob"])),
-            Ok(Command::SynthBlob {
+            ok(&["synth-blob", "--row", "g", "--out", "g.blob"]),
+            Command::SynthBlob(blobs::SynthArgs {
                 row: TableRow::G,
                 seed: 1,
                 out: "g.blob".into()
             })
         );
         assert_eq!(
-            parse(&args(&[
+            ok(&[
                 "convert", "--dtype", "i8", "--in", "a.blob", "--out", "b.blob"
-            ])),
-            Ok(Command::Convert {
+            ]),
+            Command::Convert(blobs::ConvertArgs {
                 dtype: WeightDtype::I8,
                 input: "a.blob".into(),
                 out: "b.blob".into()
             })
         );
-    }
-
-    #[test]
-    fn converts_a_blob_to_int8_and_refuses_garbage() {
-        let dir = std::env::temp_dir().join(format!("overtake-convert-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).expect("dir");
-        let (f, q) = (dir.join("g.blob"), dir.join("g_i8.blob"));
-        let bytes = firmware_core::synthetic::blob(TableRow::G, 3).expect("encode");
-        std::fs::write(&f, &bytes).expect("write");
         assert_eq!(
-            convert(WeightDtype::I8, &f, &q).ok(),
-            Some(ExitCode::SUCCESS)
+            ok(&["overtake-figure", "--trace", "t.json"]),
+            Command::OvertakeFigure(figure::FigureArgs {
+                trace: "t.json".into(),
+                episode: None,
+                overtake: None,
+                window_s: 8.0,
+                out: "overtake.svg".into()
+            })
         );
-        let out = std::fs::read(&q).expect("read");
-        let aligned = firmware_core::blob::AlignedBytes::new(&out);
-        let blob = firmware_core::Blob::parse(aligned.as_bytes()).expect("a valid blob");
-        assert_eq!(blob.header().dtype, WeightDtype::I8);
-        assert!(
-            out.len() * 3 < bytes.len(),
-            "{} vs {}",
-            out.len(),
-            bytes.len()
+        assert_eq!(
+            ok(&[
+                "overtake-figure",
+                "--trace",
+                "t.json",
+                "--episode",
+                "2",
+                "--overtake",
+                "1",
+                "--window-s",
+                "4",
+                "--out",
+                "o.svg"
+            ]),
+            Command::OvertakeFigure(figure::FigureArgs {
+                trace: "t.json".into(),
+                episode: Some(2),
+                overtake: Some(1),
+                window_s: 4.0,
+                out: "o.svg".into()
+            })
         );
-        std::fs::write(&f, b"OVTK garbage").expect("write");
-        let err = convert(WeightDtype::I8, &f, &q).expect_err("garbage");
-        assert!(err.to_string().contains("not a valid blob"), "{err}");
-        // The earlier output was not touched by the failed conversion.
-        assert_eq!(std::fs::read(&q).expect("read"), out);
-        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
-    fn refuses_bad_input() {
+    fn help_and_version_exit_zero() {
+        for args in [
+            &["--help"][..],
+            &["-h"],
+            &["help"],
+            &["help", "convert"],
+            &["--version"],
+        ] {
+            let err = parse(args).expect_err("help is reported as an error");
+            assert_eq!(err.exit_code(), 0, "{args:?}");
+        }
+    }
+
+    #[test]
+    fn refuses_bad_input_with_a_usage_error() {
         for bad in [
             &[][..],
             &["inspect"],
             &["inspect", "a", "b"],
+            &["inspect", "-x"],
+            &["size-report", "x"],
             &["cortex-m"],
             &["cortex-m", "run"],
+            &["cortex-m", "test", "--breakdown"],
             &["frob"],
             &["synth-blob", "--row", "H", "--out", "x"],
+            &["synth-blob", "--row", "AB", "--out", "x"],
             &["synth-blob", "--row", "A"],
             &["synth-blob", "--out", "x", "--seed", "-1"],
             &["convert", "--dtype", "f16", "--in", "a", "--out", "b"],
             &["convert", "--in", "a", "--out", "b"],
             &["convert", "--dtype", "i8", "--in", "a"],
+            &["overtake-figure"],
+            &["overtake-figure", "--trace", "t", "--window-s", "0"],
+            &["overtake-figure", "--trace", "t", "--window-s", "61"],
+            &["overtake-figure", "--trace", "t", "--window-s", "NaN"],
+            &["overtake-figure", "--trace", "t", "--episode", "-1"],
+            &["overtake-figure", "--trace", "t", "--frob", "1"],
+            &["learning-curves"],
+            &["learning-curves", "--run", "=x"],
+            &["learning-curves", "--run", "x="],
+            &["learning-curves", "--run"],
         ] {
-            assert!(parse(&args(bad)).is_err(), "{bad:?}");
+            let err = parse(bad).expect_err(&format!("{bad:?}"));
+            assert_eq!(err.exit_code(), 2, "{bad:?}: {err}");
         }
+    }
+
+    #[test]
+    fn value_errors_say_what_is_expected() {
+        let message = |args: &[&str]| parse(args).expect_err("bad").to_string();
+        let row = message(&["synth-blob", "--row", "H", "--out", "x"]);
+        assert!(row.contains("expected one letter, A to G"), "{row}");
+        let dtype = message(&["convert", "--dtype", "f16", "--in", "a", "--out", "b"]);
+        assert!(
+            dtype.contains("'f16' for '--dtype <f32|i8>': expected f32 or i8"),
+            "{dtype}"
+        );
+        let window = message(&["overtake-figure", "--trace", "t", "--window-s", "90"]);
+        assert!(window.contains("expected seconds in (0, 60]"), "{window}");
+        let run = message(&["learning-curves", "--run", "=x"]);
+        assert!(run.contains("expected DIR or DIR=LABEL"), "{run}");
     }
 }

@@ -19,13 +19,25 @@ pub const LAP_BOUND_S: f64 = 7.10;
 /// Samples of the authors' 500-iteration figure-8 run, which reached no gate (their logs).
 pub const AUTHORS_SAMPLES_WITHOUT_A_GATE: f64 = 410e6;
 
-/// What to draw.
-#[derive(Debug, Clone, PartialEq)]
+/// What to draw (the arguments of `learning-curves`).
+#[derive(Debug, Clone, PartialEq, clap::Args)]
 pub struct CurvesArgs {
-    /// Run directories (each holding `metrics.jsonl`) with their legend labels.
+    /// A run directory holding `metrics.jsonl`, with its legend label after `=` (default:
+    /// the directory). Repeat for each run.
+    #[arg(long = "run", value_name = "DIR[=LABEL]", required = true, value_parser = run_and_label)]
     pub runs: Vec<(PathBuf, String)>,
     /// The SVG to write.
+    #[arg(long, value_name = "FILE", default_value = "learning_curves.svg")]
     pub out: PathBuf,
+}
+
+/// `--run DIR[=LABEL]`: the directory and its label (the directory when there is none).
+fn run_and_label(value: &str) -> std::result::Result<(PathBuf, String), String> {
+    match value.split_once('=') {
+        Some((d, l)) if !d.is_empty() && !l.is_empty() => Ok((PathBuf::from(d), l.to_string())),
+        Some(_) => Err("expected DIR or DIR=LABEL, neither empty".to_string()),
+        None => Ok((PathBuf::from(value), value.to_string())),
+    }
 }
 
 /// One iteration of a run, whichever trainer wrote it.

@@ -11,19 +11,35 @@ use sitl::referee::{TRACES_FORMAT, Trace};
 
 use crate::error::{Error, Result};
 
-/// What to draw.
-#[derive(Debug, Clone, PartialEq)]
+/// What to draw (the arguments of `overtake-figure`).
+#[derive(Debug, Clone, PartialEq, clap::Args)]
 pub struct FigureArgs {
-    /// The recorded episodes (`--trace` of `sitl race` or `sitl eval`).
+    /// The recorded episodes: the JSON file of `sitl race --trace FILE` or
+    /// `sitl eval --opponent ... --trace FILE`.
+    #[arg(long, value_name = "FILE")]
     pub trace: PathBuf,
-    /// The episode; default: the first with a sustained overtake, else with any.
+    /// The episode (0-based index); default: the first with a sustained overtake, else the
+    /// first with any.
+    #[arg(long, value_name = "N")]
     pub episode: Option<usize>,
-    /// Which of the episode's overtakes (0-based); default: its first sustained one.
+    /// Which of the episode's overtakes (0-based index); default: its first sustained one.
+    #[arg(long, value_name = "K")]
     pub overtake: Option<usize>,
-    /// Seconds shown, centred on the overtake (the paper's Fig. 3 shows 4 and 8).
+    /// Seconds of flight shown, centred on the overtake, in (0, 60] (the paper's Fig. 3
+    /// shows 4 and 8).
+    #[arg(long, value_name = "SECONDS", default_value_t = 8.0, value_parser = window_seconds)]
     pub window_s: f32,
     /// The SVG to write.
+    #[arg(long, value_name = "FILE", default_value = "overtake.svg")]
     pub out: PathBuf,
+}
+
+/// `--window-s`: seconds in (0, 60].
+fn window_seconds(value: &str) -> std::result::Result<f32, String> {
+    match value.parse::<f32>() {
+        Ok(v) if v > 0.0 && v <= 60.0 => Ok(v),
+        _ => Err("expected seconds in (0, 60]".to_string()),
+    }
 }
 
 /// The recorded episodes of a trace file, with the pilots' names.

@@ -1,5 +1,5 @@
-//! `cargo run -p tools -- <subcommand>`: see `tools::cli::USAGE`.
+//! `cargo run -p tools -- <subcommand>`: `--help` lists them; see `tools::cli`.
 
 fn main() -> std::process::ExitCode {
-    tools::cli::main(std::env::args().skip(1).collect())
+    tools::cli::main()
 }
