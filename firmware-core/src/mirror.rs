@@ -9,7 +9,7 @@
 //! - the attitude: R ↦ M R B, with B = diag(1, −1, 1) the body reflected in its own x-z plane
 //!   (left and right swapped, forward and up kept), so a drone that flies nose first still
 //!   flies nose first (the body's y-z reflection would be a symmetry too, but its images fly
-//!   tail first, states no flight reaches: run m1 in docs/TRAINING.md);
+//!   tail first, states no flight reaches: run m1 in docs/journal/stage1.md);
 //! - body rates (a pseudo-vector): ω ↦ det(B)·B ω = (−ωx, ωy, −ωz);
 //! - motors: motor i's role passes to the motor at its mirror position (x, −y), which spins
 //!   the other way (so the yaw torque changes sign with the reflection, as it must).
