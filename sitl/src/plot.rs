@@ -198,82 +198,140 @@ pub fn top_down_window(
             .to_vec()
     };
     let (ego, opp) = (in_window(&trace.ego_m), in_window(&trace.opponent_m));
-    // Bounds: what was flown in the window (and the gates, for the whole track), with a
-    // 1.5 m margin.
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    let gates: Vec<Vec3> = if whole_track {
-        track.gates().iter().map(|g| g.center_m).collect()
-    } else {
-        Vec::new()
-    };
-    for p in gates
-        .iter()
-        .chain(&ego)
-        .chain(&opp)
-        .filter(|p| p.is_finite())
-    {
-        x0 = x0.min(f64::from(p.x));
-        x1 = x1.max(f64::from(p.x));
-        y0 = y0.min(f64::from(p.y));
-        y1 = y1.max(f64::from(p.y));
-    }
-    if x0 > x1 {
-        (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
-    }
-    // Far excursions (a drone leaving the track) are clipped at 30 m around the origin.
-    let (x0, x1) = ((x0 - 1.5).max(-30.0), (x1 + 1.5).min(30.0));
-    let (y0, y1) = ((y0 - 1.5).max(-30.0), (y1 + 1.5).min(30.0));
-    let scale = 780.0 / (x1 - x0).max(y1 - y0);
-    let (w, h) = ((x1 - x0) * scale, (y1 - y0) * scale + 50.0);
-    let px = |p: Vec3| {
-        (
-            (f64::from(p.x) - x0) * scale,
-            30.0 + (y1 - f64::from(p.y)) * scale,
-        )
-    };
+    let view = View::fit(track, &ego, &opp, whole_track);
     let mut svg = String::new();
-    let _ = writeln!(
-        svg,
-        r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="sans-serif" font-size="12">
-<rect width="100%" height="100%" fill="white"/>
-<clipPath id="view"><rect x="0" y="30" width="{w}" height="{}"/></clipPath>
-<text x="{}" y="20" text-anchor="middle" font-size="15">{}</text>
-<g clip-path="url(#view)">"##,
-        h - 50.0,
-        w / 2.0,
-        escape(title)
-    );
-    let line = Centerline::new(track);
-    let n = line.segments() * 64;
-    let pts: Vec<String> = (0..=n)
-        .map(|i| {
-            let (x, y) = px(line.point(i as f32 / 64.0));
-            format!("{x:.1},{y:.1}")
-        })
-        .collect();
-    let _ = writeln!(
-        svg,
-        r##"<polyline points="{}" fill="none" stroke="#bbb" stroke-dasharray="4 4"/>"##,
-        pts.join(" ")
-    );
-    for (k, g) in track.gates().iter().enumerate() {
-        let half = track.opening_half_size_m;
-        let side = g.frame.rotate(Vec3::Y);
-        let side = Vec3::new(side.x, side.y, 0.0);
-        let side = side.scale(half / side.norm().max(1e-6));
-        let ((ax, ay), (bx, by)) = (px(g.center_m - side), px(g.center_m + side));
-        let (cx, cy) = px(g.center_m + g.forward().scale(-1.2));
-        let _ = writeln!(
-            svg,
-            r##"<line x1="{ax:.1}" y1="{ay:.1}" x2="{bx:.1}" y2="{by:.1}" stroke="#222" stroke-width="4"/><text x="{cx:.1}" y="{cy:.1}" text-anchor="middle" fill="#222">g{k}</text>"##
-        );
-    }
+    view.header(&mut svg, title);
+    view.centreline(&mut svg, track);
+    view.gates(&mut svg, track);
     let per_second = (1.0 / f64::from(trace.dt_s.max(1e-3))).round().max(1.0) as usize;
     let marked = window.len() < 20 * per_second;
     for (path, color, name) in [(&ego, "#1f5fd6", "ego"), (&opp, "#d61fb4", "opponent")] {
         if path.is_empty() {
             continue;
         }
+        view.path(&mut svg, trace, &window, path, color, name);
+        // Seconds along a short window's paths, so the two drones can be compared in time.
+        if marked {
+            view.seconds(&mut svg, trace, &window, per_second, path, color);
+        }
+    }
+    view.overtakes(&mut svg, trace, &window);
+    view.legend(&mut svg);
+    svg + "</svg>\n"
+}
+
+/// The frame of a top-down view: the metres it shows and the pixels it draws them on.
+struct View {
+    x0: f64,
+    y1: f64,
+    scale: f64,
+    w: f64,
+    h: f64,
+}
+
+impl View {
+    /// Fitted to the points of `ego` and `opp` (and the gates, for the whole track) with a
+    /// 1.5 m margin.
+    fn fit(track: &Track<'_>, ego: &[Vec3], opp: &[Vec3], whole_track: bool) -> Self {
+        let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        let gates: Vec<Vec3> = if whole_track {
+            track.gates().iter().map(|g| g.center_m).collect()
+        } else {
+            Vec::new()
+        };
+        for p in gates.iter().chain(ego).chain(opp).filter(|p| p.is_finite()) {
+            x0 = x0.min(f64::from(p.x));
+            x1 = x1.max(f64::from(p.x));
+            y0 = y0.min(f64::from(p.y));
+            y1 = y1.max(f64::from(p.y));
+        }
+        if x0 > x1 {
+            (x0, x1, y0, y1) = (-1.0, 1.0, -1.0, 1.0);
+        }
+        // Far excursions (a drone leaving the track) are clipped at 30 m around the origin.
+        let (x0, x1) = ((x0 - 1.5).max(-30.0), (x1 + 1.5).min(30.0));
+        let (y0, y1) = ((y0 - 1.5).max(-30.0), (y1 + 1.5).min(30.0));
+        let scale = 780.0 / (x1 - x0).max(y1 - y0);
+        let (w, h) = ((x1 - x0) * scale, (y1 - y0) * scale + 50.0);
+        Self {
+            x0,
+            y1,
+            scale,
+            w,
+            h,
+        }
+    }
+
+    /// The pixel of `p` (x right, y down, below the 30 px title band).
+    fn px(&self, p: Vec3) -> (f64, f64) {
+        (
+            (f64::from(p.x) - self.x0) * self.scale,
+            30.0 + (self.y1 - f64::from(p.y)) * self.scale,
+        )
+    }
+
+    /// `p`'s pixel as a polyline point.
+    fn point(&self, p: Vec3) -> String {
+        let (x, y) = self.px(p);
+        format!("{x:.1},{y:.1}")
+    }
+
+    /// The opening `<svg>`, background, title and the clipped group the drawing goes in.
+    fn header(&self, svg: &mut String, title: &str) {
+        let (w, h) = (self.w, self.h);
+        let _ = writeln!(
+            svg,
+            r##"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" viewBox="0 0 {w} {h}" font-family="sans-serif" font-size="12">
+<rect width="100%" height="100%" fill="white"/>
+<clipPath id="view"><rect x="0" y="30" width="{w}" height="{}"/></clipPath>
+<text x="{}" y="20" text-anchor="middle" font-size="15">{}</text>
+<g clip-path="url(#view)">"##,
+            h - 50.0,
+            w / 2.0,
+            escape(title)
+        );
+    }
+
+    /// The track's centreline, dashed grey.
+    fn centreline(&self, svg: &mut String, track: &Track<'_>) {
+        let line = Centerline::new(track);
+        let n = line.segments() * 64;
+        let pts: Vec<String> = (0..=n)
+            .map(|i| self.point(line.point(i as f32 / 64.0)))
+            .collect();
+        let _ = writeln!(
+            svg,
+            r##"<polyline points="{}" fill="none" stroke="#bbb" stroke-dasharray="4 4"/>"##,
+            pts.join(" ")
+        );
+    }
+
+    /// Each gate as a bar across its direction of travel, its index behind it.
+    fn gates(&self, svg: &mut String, track: &Track<'_>) {
+        for (k, g) in track.gates().iter().enumerate() {
+            let half = track.opening_half_size_m;
+            let side = g.frame.rotate(Vec3::Y);
+            let side = Vec3::new(side.x, side.y, 0.0);
+            let side = side.scale(half / side.norm().max(1e-6));
+            let ((ax, ay), (bx, by)) = (self.px(g.center_m - side), self.px(g.center_m + side));
+            let (cx, cy) = self.px(g.center_m + g.forward().scale(-1.2));
+            let _ = writeln!(
+                svg,
+                r##"<line x1="{ax:.1}" y1="{ay:.1}" x2="{bx:.1}" y2="{by:.1}" stroke="#222" stroke-width="4"/><text x="{cx:.1}" y="{cy:.1}" text-anchor="middle" fill="#222">g{k}</text>"##
+            );
+        }
+    }
+
+    /// A drone's `path` over `window` as polylines broken at the window's respawns.
+    fn path(
+        &self,
+        svg: &mut String,
+        trace: &Trace,
+        window: &core::ops::Range<usize>,
+        path: &[Vec3],
+        color: &str,
+        name: &str,
+    ) {
         let mut start = 0usize;
         let mut cuts: Vec<usize> = trace
             .respawns
@@ -289,10 +347,7 @@ pub fn top_down_window(
                 .unwrap_or(&[])
                 .iter()
                 .filter(|p| p.is_finite())
-                .map(|&p| {
-                    let (x, y) = px(p);
-                    format!("{x:.1},{y:.1}")
-                })
+                .map(|&p| self.point(p))
                 .collect();
             if seg.len() > 1 {
                 let _ = writeln!(
@@ -303,55 +358,72 @@ pub fn top_down_window(
             }
             start = end;
         }
-        // Seconds along a short window's paths, so the two drones can be compared in time.
-        if marked {
-            for (i, p) in path
-                .iter()
-                .enumerate()
-                .filter(|(i, p)| (window.start + i + 1).is_multiple_of(per_second) && p.is_finite())
-            {
-                let (x, y) = px(*p);
-                let t = (window.start + i + 1) as f64 * f64::from(trace.dt_s);
-                let _ = writeln!(
-                    svg,
-                    r##"<circle cx="{x:.1}" cy="{y:.1}" r="3" fill="{color}"/><text x="{:.1}" y="{:.1}" fill="{color}" font-size="10">{t:.0} s</text>"##,
-                    x + 4.0,
-                    y - 4.0
-                );
-            }
+    }
+
+    /// A dot with its time at every whole second along a drone's `path` over `window`.
+    fn seconds(
+        &self,
+        svg: &mut String,
+        trace: &Trace,
+        window: &core::ops::Range<usize>,
+        per_second: usize,
+        path: &[Vec3],
+        color: &str,
+    ) {
+        for (i, p) in path
+            .iter()
+            .enumerate()
+            .filter(|(i, p)| (window.start + i + 1).is_multiple_of(per_second) && p.is_finite())
+        {
+            let (x, y) = self.px(*p);
+            let t = (window.start + i + 1) as f64 * f64::from(trace.dt_s);
+            let _ = writeln!(
+                svg,
+                r##"<circle cx="{x:.1}" cy="{y:.1}" r="3" fill="{color}"/><text x="{:.1}" y="{:.1}" fill="{color}" font-size="10">{t:.0} s</text>"##,
+                x + 4.0,
+                y - 4.0
+            );
         }
     }
-    for mark in trace
-        .overtakes
-        .iter()
-        .filter(|m| window.contains(&(m.step as usize)))
-    {
-        let Some(p) = trace.ego_m.get((mark.step as usize).saturating_sub(1)) else {
-            continue;
-        };
-        let (x, y) = px(*p);
-        let label = if mark.sustained {
-            "sustained overtake"
-        } else {
-            "overtake"
-        };
-        let t = f64::from(mark.step) * f64::from(trace.dt_s);
+
+    /// A ring on the ego at each of the window's overtakes, labelled with its time.
+    fn overtakes(&self, svg: &mut String, trace: &Trace, window: &core::ops::Range<usize>) {
+        for mark in trace
+            .overtakes
+            .iter()
+            .filter(|m| window.contains(&(m.step as usize)))
+        {
+            let Some(p) = trace.ego_m.get((mark.step as usize).saturating_sub(1)) else {
+                continue;
+            };
+            let (x, y) = self.px(*p);
+            let label = if mark.sustained {
+                "sustained overtake"
+            } else {
+                "overtake"
+            };
+            let t = f64::from(mark.step) * f64::from(trace.dt_s);
+            let _ = writeln!(
+                svg,
+                r##"<circle cx="{x:.1}" cy="{y:.1}" r="8" fill="none" stroke="#e07000" stroke-width="2.5"/><text x="{:.1}" y="{:.1}" fill="#e07000" font-weight="bold">{label} at {t:.2} s</text>"##,
+                x + 10.0,
+                y + 14.0
+            );
+        }
+    }
+
+    /// Closes the drawing's group; the legend and the scale below it.
+    fn legend(&self, svg: &mut String) {
+        let (w, h, scale) = (self.w, self.h, self.scale);
         let _ = writeln!(
             svg,
-            r##"<circle cx="{x:.1}" cy="{y:.1}" r="8" fill="none" stroke="#e07000" stroke-width="2.5"/><text x="{:.1}" y="{:.1}" fill="#e07000" font-weight="bold">{label} at {t:.2} s</text>"##,
-            x + 10.0,
-            y + 14.0
+            r##"</g><text x="10" y="{}" fill="#1f5fd6">ego</text><text x="45" y="{}" fill="#d61fb4">opponent</text><text x="{}" y="{}" text-anchor="end" fill="#666">1 m = {scale:.1} px</text>"##,
+            h - 10.0,
+            h - 10.0,
+            w - 10.0,
+            h - 10.0
         );
     }
-    let _ = writeln!(
-        svg,
-        r##"</g><text x="10" y="{}" fill="#1f5fd6">ego</text><text x="45" y="{}" fill="#d61fb4">opponent</text><text x="{}" y="{}" text-anchor="end" fill="#666">1 m = {scale:.1} px</text>"##,
-        h - 10.0,
-        h - 10.0,
-        w - 10.0,
-        h - 10.0
-    );
-    svg + "</svg>\n"
 }
 
 #[cfg(test)]

@@ -1,0 +1,259 @@
+//! The simulator's side of a lockstep race: the clock, one datagram per controller and
+//! step, the answers collected within the timeouts.
+
+use super::super::NewFlight;
+use super::super::gcs::GroundStation;
+use super::launch::Endpoint;
+use super::link::{Answer, ControllerLink};
+use super::{Entrant, RaceConfig, RaceError};
+use crate::frames::NedState;
+use crate::referee::Crew;
+use crate::world::World;
+use firmware_core::vehicle::{MotorCommand, VehicleState};
+use std::io;
+use std::net::{SocketAddr, UdpSocket};
+use std::time::{Duration, Instant};
+
+/// One controller link as the simulator holds it.
+pub(super) struct Link {
+    pub(super) end: ControllerLink,
+    pub(super) addr: SocketAddr,
+    pub(super) failure: Option<String>,
+    command: MotorCommand,
+}
+
+impl Link {
+    /// True while the link is live and its controller owes an answer.
+    fn owes(&self) -> bool {
+        self.failure.is_none() && self.end.awaiting()
+    }
+}
+
+/// The simulator's side of a lockstep race: a [`Crew`] whose pilots are MAVLink endpoints.
+pub(super) struct Lockstep<'e> {
+    socket: UdpSocket,
+    links: Vec<Link>,
+    endpoints: &'e mut [Endpoint],
+    dt_ms: u32,
+    clock_ms: u32,
+    step: u64,
+    flight: u32,
+    /// The wait in force: the start-up timeout until the first flight is acknowledged, the
+    /// step timeout after.
+    timeout: Duration,
+    step_timeout: Duration,
+    gcs: GroundStation,
+    pace: Option<Instant>,
+    unknown_sender: u64,
+    buf: Vec<u8>,
+}
+
+impl<'e> Lockstep<'e> {
+    /// The simulator's side of a race of `entrants` against their started `endpoints`, on
+    /// a socket of its own; with the instant the race's wall-clock time counts from.
+    pub(super) fn new(
+        entrants: &[Entrant],
+        endpoints: &'e mut [Endpoint],
+        config: &RaceConfig,
+        world: &World,
+    ) -> Result<(Self, Instant), RaceError> {
+        let socket = UdpSocket::bind("127.0.0.1:0")?;
+        let links = entrants
+            .iter()
+            .zip(endpoints.iter())
+            .map(|(e, ep)| Link {
+                end: ControllerLink::new(e.system_id, config.signing_key),
+                addr: ep.addr,
+                failure: None,
+                command: MotorCommand::STOP,
+            })
+            .collect();
+        let ids: Vec<u8> = entrants.iter().map(|e| e.system_id).collect();
+        let gcs = GroundStation::new(
+            &ids,
+            config.gcs,
+            config.gcs_rate_hz,
+            world.dt_s,
+            config.tlog,
+        )?;
+        let started = Instant::now();
+        let lockstep = Self {
+            socket,
+            links,
+            endpoints,
+            dt_ms: (world.dt_s * 1000.0).round() as u32,
+            clock_ms: 0,
+            step: 0,
+            flight: 0,
+            // The first contact may wait for a process to load its blob.
+            timeout: config.startup_timeout,
+            step_timeout: config.step_timeout,
+            gcs,
+            pace: config.realtime.then(Instant::now),
+            unknown_sender: 0,
+            buf: vec![0u8; 65_536],
+        };
+        Ok((lockstep, started))
+    }
+
+    /// Sends each controller the shutdown command and hands back the links, the telemetry
+    /// log and the count of frames from unknown senders.
+    pub(super) fn shut_down(mut self) -> (Vec<Link>, Vec<u8>, u64) {
+        let mut out = Vec::new();
+        for i in 0..self.links.len() {
+            out.clear();
+            self.links[i].end.shut_down(&mut out);
+            self.send(i, &out);
+        }
+        let tlog = self.gcs.take_tlog();
+        (self.links, tlog, self.unknown_sender)
+    }
+
+    /// Reads datagrams until no live link owes an answer or the timeout passes; a link that
+    /// still does is declared failed with `what` in the reason. A command answer is kept in
+    /// the link's `command`.
+    fn collect(&mut self, what: &str) {
+        let deadline = Instant::now() + self.timeout;
+        while self.links.iter().any(Link::owes) {
+            let now = Instant::now();
+            if now >= deadline {
+                for l in self.links.iter_mut().filter(|l| l.owes()) {
+                    l.failure = Some(format!(
+                        "silent: no {what} within {} ms (simulated t = {:.2} s)",
+                        self.timeout.as_millis(),
+                        f64::from(self.clock_ms) / 1000.0
+                    ));
+                }
+                return;
+            }
+            let slice = (deadline - now).min(Duration::from_millis(20));
+            if self.socket.set_read_timeout(Some(slice)).is_err() {
+                return;
+            }
+            match self.socket.recv_from(&mut self.buf) {
+                Ok((n, from)) => {
+                    let Some(link) = self.links.iter_mut().find(|l| l.addr == from) else {
+                        self.unknown_sender += 1;
+                        continue;
+                    };
+                    if let Some(Answer::Command(c)) = link.end.handle(&self.buf[..n]).answer {
+                        link.command = c;
+                    }
+                }
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::WouldBlock
+                            | io::ErrorKind::TimedOut
+                            | io::ErrorKind::ConnectionRefused
+                    ) =>
+                {
+                    self.check_processes();
+                }
+                Err(e) => {
+                    for l in self.links.iter_mut().filter(|l| l.owes()) {
+                        l.failure = Some(format!("simulator socket error: {e}"));
+                    }
+                }
+            }
+        }
+    }
+
+    /// Declares failed, at once, the links whose controller process has exited.
+    fn check_processes(&mut self) {
+        for (l, e) in self.links.iter_mut().zip(self.endpoints.iter_mut()) {
+            if !l.owes() {
+                continue;
+            }
+            if let Some(Ok(Some(status))) = e.child.as_mut().map(|c| c.try_wait()) {
+                l.failure = Some(format!(
+                    "controller process exited ({status}) at simulated t = {:.2} s",
+                    f64::from(self.clock_ms) / 1000.0
+                ));
+            }
+        }
+    }
+
+    fn send(&mut self, i: usize, datagram: &[u8]) {
+        let l = &mut self.links[i];
+        if let Err(e) = self.socket.send_to(datagram, l.addr) {
+            if e.kind() != io::ErrorKind::ConnectionRefused {
+                l.failure = Some(format!("cannot send to {}: {e}", l.addr));
+            }
+        }
+    }
+}
+
+impl<const N: usize> Crew<N> for Lockstep<'_> {
+    fn reset(&mut self, targets: [usize; N]) {
+        self.flight += 1;
+        let ids: Vec<u8> = self.links.iter().map(|l| l.end.system_id()).collect();
+        let mut out = Vec::with_capacity(64);
+        for (i, gate) in targets.into_iter().enumerate() {
+            let flight = NewFlight {
+                number: self.flight,
+                gate,
+                step_period_ms: self.dt_ms,
+                first_step_ms: self.clock_ms,
+                opponent: ids
+                    .iter()
+                    .enumerate()
+                    .find(|&(j, _)| j != i)
+                    .map(|(_, &id)| id),
+            };
+            let Some(l) = self.links.get_mut(i).filter(|l| l.failure.is_none()) else {
+                continue;
+            };
+            out.clear();
+            l.end.start_flight(&flight, &mut out);
+            self.send(i, &out);
+        }
+        self.collect("acknowledgement of the new flight");
+        // Every controller has answered once (or failed): from now on, steps are timed.
+        self.timeout = self.step_timeout;
+    }
+
+    fn commands(&mut self, states: &[VehicleState; N]) -> [MotorCommand; N] {
+        let t = self.clock_ms;
+        if let Some(start) = self.pace {
+            let due = start + Duration::from_millis(u64::from(t));
+            if let Some(wait) = due.checked_duration_since(Instant::now()) {
+                std::thread::sleep(wait);
+            }
+        }
+        let ned: Vec<NedState> = states.iter().map(NedState::from_enu).collect();
+        let ids: Vec<u8> = self.links.iter().map(|l| l.end.system_id()).collect();
+        let mut out = Vec::with_capacity(256);
+        for i in 0..self.links.len() {
+            let l = &mut self.links[i];
+            l.command = MotorCommand::STOP;
+            if l.failure.is_some() {
+                continue;
+            }
+            // The other vehicles first, then the own state: one datagram per step.
+            let step: Vec<(u8, NedState)> = (0..ned.len())
+                .filter(|&j| j != i)
+                .chain([i])
+                .map(|j| (ids[j], ned[j]))
+                .collect();
+            out.clear();
+            l.end.ask_step(t, &step, &mut out);
+            self.send(i, &out);
+        }
+        self.collect("HIL_ACTUATOR_CONTROLS for the step");
+        for l in &mut self.links {
+            if l.failure.is_some() {
+                l.command = MotorCommand::STOP;
+            }
+        }
+        let errors: Vec<u64> = self
+            .links
+            .iter()
+            .map(|l| l.end.stats().rejected())
+            .collect();
+        self.gcs.publish(self.step, t, &ned, &errors);
+        self.clock_ms += self.dt_ms;
+        self.step += 1;
+        core::array::from_fn(|i| self.links.get(i).map_or(MotorCommand::STOP, |l| l.command))
+    }
+}

@@ -1,0 +1,78 @@
+//! `sitl eval`: a pilot's Table-1 row over many seeded episodes, in-process.
+
+use super::{Contest, load, load_opponent, write};
+use clap::Args;
+use sitl::eval::{Report, evaluate};
+use sitl::pilot::PilotSpec;
+use std::path::PathBuf;
+
+/// The arguments of `sitl eval`.
+#[derive(Args)]
+#[command(mut_arg("ego", |a| a.required(true).help(
+    "The ego: a policy blob file, or \"baseline\" for the classical controller \
+     (\"baseline:CRUISE_MPS[:OFFSET_M]\" sets its cruise speed and a line offset to the left)"
+)))]
+#[command(mut_arg("opponent", |a| a.help(
+    "An opponent to race (a blob or \"baseline[:CRUISE_MPS[:OFFSET_M]]\"); without one the \
+     ego flies a time trial"
+)))]
+pub struct EvalArgs {
+    #[command(flatten)]
+    contest: Contest,
+    /// Also draw the first episode from above (paths and gates) as SVG to this file.
+    #[arg(long)]
+    plot: Option<PathBuf>,
+}
+
+/// Runs `sitl eval`.
+pub fn run(args: EvalArgs) -> Result<(), String> {
+    let contest = &args.contest;
+    let preset = contest.common.preset;
+    let ego_spec = contest.required_ego()?;
+    let ego = load(ego_spec, &preset, "--ego")?;
+    let opponent = load_opponent(contest.opponent.as_deref(), &preset)?;
+    if opponent.is_none() && ego.needs_opponent() {
+        return Err(format!(
+            "--ego {ego_spec} observes an opponent; race it with --opponent <blob|baseline>"
+        ));
+    }
+    let config = contest.eval_config();
+    let started = std::time::Instant::now();
+    let record = args.plot.is_some() || contest.scoring.trace.is_some();
+    let episodes = evaluate(&ego, opponent.as_ref(), &config, record);
+    let pilots: Vec<String> = core::iter::once(ego.describe())
+        .chain(opponent.as_ref().map(PilotSpec::describe))
+        .collect();
+    contest.scoring.write_traces(&pilots, &preset, &episodes)?;
+    if let (Some(path), Some(first)) = (&args.plot, episodes.first()) {
+        let title = format!(
+            "{}{}, episode 0 ({} preset, seed {})",
+            ego.describe(),
+            opponent
+                .as_ref()
+                .map(|o| format!(" vs {}", o.describe()))
+                .unwrap_or_default(),
+            preset.name,
+            contest.scoring.seed
+        );
+        let svg = sitl::plot::top_down(
+            &config.world(opponent.is_some()).track,
+            &first.trace,
+            &title,
+        );
+        write(path, svg.as_bytes())?;
+    }
+    let metrics: Vec<_> = episodes.into_iter().map(|e| e.metrics).collect();
+    let report = Report::new(&ego, opponent.as_ref(), &config, &metrics);
+    print!("{}", report.table());
+    eprintln!(
+        "({} episodes, {:.0} simulated s, in {:.2} s wall-clock)",
+        report.episodes,
+        report.sim_seconds,
+        started.elapsed().as_secs_f64()
+    );
+    if let Some(path) = &contest.scoring.json {
+        write(path, report.to_json().as_bytes())?;
+    }
+    Ok(())
+}
