@@ -325,30 +325,7 @@ impl Hostile {
                 params,
                 number,
                 first,
-            } => {
-                let p3 = number.map_or(params[2], |n| n.resolve(now) as f32);
-                let (mut p5, mut p6) = (params[4], params[5]);
-                if let Some(first) = first {
-                    let t = first.ms(next_ms);
-                    (p5, p6) = ((t >> 16) as f32, (t & 0xffff) as f32);
-                }
-                (
-                    from,
-                    MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-                        param1: params[0],
-                        param2: params[1],
-                        param3: p3,
-                        param4: params[3],
-                        param5: p5,
-                        param6: p6,
-                        param7: params[6],
-                        command: MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT,
-                        target_system: target,
-                        target_component: AUTOPILOT_COMPONENT_ID,
-                        confirmation: 0,
-                    }),
-                )
-            }
+            } => (from, reset_frame(target, params, number, first, now)),
             Self::NotShutdown {
                 from,
                 target,
@@ -381,25 +358,7 @@ impl Hostile {
                 from,
                 time_usec,
                 controls,
-            } => {
-                let mut all = [0.0f32; 16];
-                all[..4].copy_from_slice(&controls);
-                let time_usec = match time_usec {
-                    AnswerTime::Asked(k) => {
-                        asked_us.saturating_add_signed(k * i64::from(PERIOD_MS) * 1000)
-                    }
-                    AnswerTime::At(t) => t,
-                };
-                (
-                    from,
-                    MavMessage::HIL_ACTUATOR_CONTROLS(HIL_ACTUATOR_CONTROLS_DATA {
-                        time_usec,
-                        controls: all,
-                        mode: MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED,
-                        flags: HilActuatorControlsFlags::HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP,
-                    }),
-                )
-            }
+            } => (from, answer_frame(time_usec, controls, asked_us)),
             Self::Ack {
                 from,
                 number,
@@ -419,6 +378,53 @@ impl Hostile {
             Self::Heartbeat { from } => (from, vehicle_heartbeat()),
         }
     }
+}
+
+/// A `MAV_CMD_DO_SET_MISSION_CURRENT` (a new flight) with `params`, its flight number and
+/// first step's time resolved against `now` where given.
+fn reset_frame(
+    target: u8,
+    params: [f32; 7],
+    number: Option<Number>,
+    first: Option<Stamp>,
+    now: Now,
+) -> MavMessage {
+    let p3 = number.map_or(params[2], |n| n.resolve(now) as f32);
+    let (mut p5, mut p6) = (params[4], params[5]);
+    if let Some(first) = first {
+        let t = first.ms(now.next_ms);
+        (p5, p6) = ((t >> 16) as f32, (t & 0xffff) as f32);
+    }
+    MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+        param1: params[0],
+        param2: params[1],
+        param3: p3,
+        param4: params[3],
+        param5: p5,
+        param6: p6,
+        param7: params[6],
+        command: MavCmd::MAV_CMD_DO_SET_MISSION_CURRENT,
+        target_system: target,
+        target_component: AUTOPILOT_COMPONENT_ID,
+        confirmation: 0,
+    })
+}
+
+/// A lockstep `HIL_ACTUATOR_CONTROLS` answer with `controls`, for the asked step (relative)
+/// or an absolute time.
+fn answer_frame(time_usec: AnswerTime, controls: [f32; 4], asked_us: u64) -> MavMessage {
+    let mut all = [0.0f32; 16];
+    all[..4].copy_from_slice(&controls);
+    let time_usec = match time_usec {
+        AnswerTime::Asked(k) => asked_us.saturating_add_signed(k * i64::from(PERIOD_MS) * 1000),
+        AnswerTime::At(t) => t,
+    };
+    MavMessage::HIL_ACTUATOR_CONTROLS(HIL_ACTUATOR_CONTROLS_DATA {
+        time_usec,
+        controls: all,
+        mode: MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED,
+        flags: HilActuatorControlsFlags::HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP,
+    })
 }
 
 /// Who signs a hostile datagram's frames.

@@ -22,163 +22,38 @@ use crate::referee::{SpawnMode, TrackProgress};
 use crate::world::{Drone, World};
 use firmware_core::Controller;
 use firmware_core::baseline::BaselineController;
-use firmware_core::blob::AlignedBytes;
+
 use firmware_core::mirror::{TrackMirror, observe_folded, unfold_action};
 use firmware_core::nn::ACTION_DIM;
 use firmware_core::observation::{Observation, ObservationError, ObservationSpec};
-use firmware_core::track::{CrashRules, Track};
+use firmware_core::track::CrashRules;
 use firmware_core::vehicle::ActionMap;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
 mod config;
+mod error;
+mod opponent;
 pub mod reward;
 mod spawn;
+mod stats;
 
 pub use crate::dynamics::PresetName;
 pub use config::{
     EnvConfig, EnvConfigError, MAX_ENVS, MAX_SPAWN_SPEED_MPS, PAPER_VELOCITY_SCALE_MPS, RaceConfig,
     Task,
 };
+pub use error::{ActionShapeError, EnvError, EpisodeStepsError};
+use opponent::Race;
+pub use opponent::{MAX_BLOB_BYTES, interned, read_blob};
 pub use reward::{Competition, RewardTerms, RewardWeights, dense_competition};
 use reward::{Rewards, StepOutcome};
 use spawn::{PassReplay, SpawnRule, respawn};
+pub use stats::{EnvStats, StepRecord};
 
 /// Envs per rayon task.
 const CHUNK: usize = 128;
-
-/// The environment could not be built.
-#[derive(Clone, Debug, PartialEq)]
-pub enum EnvError {
-    /// A field of the config is out of its range.
-    Config(EnvConfigError),
-    /// The opponent's blob cannot be read.
-    ReadOpponent {
-        /// The blob's path.
-        path: std::path::PathBuf,
-        /// What the file system said (`NotFound` for a missing file).
-        kind: std::io::ErrorKind,
-        /// Its message.
-        message: String,
-    },
-    /// The opponent's blob does not validate or cannot be flown as stage 2's opponent, or
-    /// the observation is folded ([`firmware_core::mirror`]) on a track without the symmetry.
-    Unflyable(String),
-}
-
-impl core::fmt::Display for EnvError {
-    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        match self {
-            Self::Config(e) => e.fmt(f),
-            Self::ReadOpponent { path, message, .. } => {
-                write!(f, "opponent '{}': {message}", path.display())
-            }
-            Self::Unflyable(m) => f.write_str(m),
-        }
-    }
-}
-
-impl std::error::Error for EnvError {}
-
-impl From<EnvConfigError> for EnvError {
-    fn from(e: EnvConfigError) -> Self {
-        Self::Config(e)
-    }
-}
-
-/// The largest blob an environment reads (bytes): well above row G in f32 (~1.3 MB), so a
-/// wrong path (`/dev/zero`) is refused instead of read without end.
-pub const MAX_BLOB_BYTES: u64 = 64 << 20;
-
-/// The bytes of the blob at `path`, at most [`MAX_BLOB_BYTES`].
-pub fn read_blob(path: &std::path::Path) -> Result<AlignedBytes, EnvError> {
-    use std::io::Read;
-    let refused = |kind: std::io::ErrorKind, message: String| EnvError::ReadOpponent {
-        path: path.to_path_buf(),
-        kind,
-        message,
-    };
-    let file = std::fs::File::open(path).map_err(|e| refused(e.kind(), e.to_string()))?;
-    let mut raw = Vec::new();
-    file.take(MAX_BLOB_BYTES + 1)
-        .read_to_end(&mut raw)
-        .map_err(|e| refused(e.kind(), e.to_string()))?;
-    if raw.len() as u64 > MAX_BLOB_BYTES {
-        return Err(refused(
-            std::io::ErrorKind::InvalidData,
-            format!("larger than {MAX_BLOB_BYTES} bytes: not a blob"),
-        ));
-    }
-    Ok(AlignedBytes::new(&raw))
-}
-
-/// `bytes` for the rest of the process, one copy per distinct blob: the opponent's
-/// [`Controller`] views its blob's weights in place (as in flash), so every env's controller
-/// borrows one copy that must outlive the environments, which are rebuilt during a run.
-pub fn interned(bytes: &AlignedBytes) -> &'static AlignedBytes {
-    static BLOBS: std::sync::Mutex<Vec<&'static AlignedBytes>> = std::sync::Mutex::new(Vec::new());
-    let mut blobs = BLOBS
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
-    if let Some(b) = blobs.iter().find(|b| **b == bytes) {
-        return b;
-    }
-    let b: &'static AlignedBytes = Box::leak(Box::new(bytes.clone()));
-    blobs.push(b);
-    b
-}
-
-/// The built race: one controller template, cloned into every slot.
-#[derive(Clone, Debug)]
-struct Race {
-    opponent: Controller<'static>,
-    competition: Competition,
-    weight: f32,
-}
-
-/// Per-step statistics of the whole batch, drained by [`VecEnv::take_stats`].
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct EnvStats {
-    /// Env-steps taken.
-    pub steps: u64,
-    /// Reward terms summed over those steps.
-    pub terms: RewardTerms,
-    /// Gates passed.
-    pub gates_passed: u64,
-    /// Crashes (episode ends that are not time-outs).
-    pub crashes: u64,
-    /// Episodes ended by the time limit.
-    pub timeouts: u64,
-    /// Stage 2: episodes ended by the opponent's crash alone (truncations).
-    pub opponent_crashes: u64,
-    /// Action components that were NaN or infinite, flown as 0 ([`VecEnv::step`]): a
-    /// learner that counts any has diverged.
-    pub nonfinite_actions: u64,
-}
-
-impl EnvStats {
-    /// Gates passed / (gates passed + crashes): the success rate of docs/DESIGN.md "Metrics" over the
-    /// steps counted (each crash meets one gate it did not pass).
-    pub fn success_rate(&self) -> f64 {
-        let met = self.gates_passed + self.crashes;
-        if met == 0 {
-            0.0
-        } else {
-            self.gates_passed as f64 / met as f64
-        }
-    }
-
-    fn add(&mut self, o: &Self) {
-        self.steps += o.steps;
-        self.terms.add(&o.terms);
-        self.gates_passed += o.gates_passed;
-        self.crashes += o.crashes;
-        self.timeouts += o.timeouts;
-        self.opponent_crashes += o.opponent_crashes;
-        self.nonfinite_actions += o.nonfinite_actions;
-    }
-}
 
 #[derive(Clone, Debug)]
 struct Slot {
@@ -223,22 +98,6 @@ pub struct VecEnv {
     fold: Option<TrackMirror>,
 }
 
-/// What one env's last step was made of: its reward term by term and its events. The
-/// per-step counterpart of [`EnvStats`], for learners that log or filter per env.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct StepRecord {
-    /// The reward's terms; `terms.total() as f32` is the env's reward.
-    pub terms: RewardTerms,
-    /// The ego passed its target gate.
-    pub gate_passed: bool,
-    /// The ego crashed (a terminal step).
-    pub crashed: bool,
-    /// The episode reached its time limit (a truncation).
-    pub timed_out: bool,
-    /// Stage 2: the opponent crashed while the ego did not (a truncation too).
-    pub opponent_crashed: bool,
-}
-
 /// Observation size of stage 1.
 pub const OBS_DIM: usize = 17;
 
@@ -271,33 +130,7 @@ impl VecEnv {
             CrashRules::STAGE1
         };
         let world = World::figure_eight(config.preset(), rules);
-        let race = match &config.race {
-            None => None,
-            Some(r) => {
-                let bytes = read_blob(&r.opponent)?;
-                let unflyable = |e: &dyn core::fmt::Display| {
-                    EnvError::Unflyable(format!("opponent '{}': {e}", r.opponent.display()))
-                };
-                let blob = firmware_core::blob::Blob::parse(interned(&bytes).as_bytes())
-                    .map_err(|e| unflyable(&e))?;
-                let opponent = Controller::new(
-                    &blob,
-                    Track::figure_eight(),
-                    blob.header().control_period_ns,
-                )
-                .map_err(|e| unflyable(&e))?;
-                if blob.header().observation.layout.needs_opponent() {
-                    return Err(unflyable(
-                        &"the opponent's policy observes an opponent itself; stage 2 races a time-trial (17-value) policy",
-                    ));
-                }
-                Some(Race {
-                    opponent,
-                    competition: r.competition,
-                    weight: r.competition_weight,
-                })
-            }
-        };
+        let race = config.race.as_ref().map(Race::load).transpose()?;
         let progress = TrackProgress::new(&world.track);
         let max_steps = ((config.episode_s / world.dt_s).round() as u32).max(1);
         let n = config.num_envs;
@@ -669,48 +502,6 @@ impl VecEnv {
         total
     }
 }
-
-/// The actions given to [`VecEnv::step`] do not have `num_envs × 4` values.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct ActionShapeError {
-    /// Values expected.
-    pub expected: usize,
-    /// Values given.
-    pub got: usize,
-}
-
-impl core::fmt::Display for ActionShapeError {
-    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        write!(
-            f,
-            "expected {} action values (envs × 4), got {}",
-            self.expected, self.got
-        )
-    }
-}
-
-impl std::error::Error for ActionShapeError {}
-
-/// The counts given to [`VecEnv::set_episode_steps`] are not one per env.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct EpisodeStepsError {
-    /// Values expected (`num_envs`).
-    pub expected: usize,
-    /// Values given.
-    pub got: usize,
-}
-
-impl core::fmt::Display for EpisodeStepsError {
-    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
-        write!(
-            f,
-            "expected {} episode step counts (one per env), got {}",
-            self.expected, self.got
-        )
-    }
-}
-
-impl std::error::Error for EpisodeStepsError {}
 
 /// Steps one env; returns what the step was made of.
 fn step_slot(
