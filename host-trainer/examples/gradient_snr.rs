@@ -25,6 +25,7 @@ use host_trainer::batch::Batch;
 use host_trainer::config::{Guard, TrainConfig};
 use host_trainer::guard::measured_return;
 use host_trainer::nets::PolicyNet;
+use host_trainer::ppo::Learner;
 use host_trainer::rollout::Rollout;
 use host_trainer::rollout::collect_rollout;
 use host_trainer::run_dir::checkpoint_learner;
@@ -98,30 +99,7 @@ fn main() {
         grads.push(g);
         batches.push(batch);
     }
-    let mut cos = Vec::new();
-    for i in 0..k {
-        for j in i + 1..k {
-            let c = dot(&grads[i], &grads[j])
-                / (dot(&grads[i], &grads[i]) * dot(&grads[j], &grads[j])).sqrt();
-            cos.push(c);
-        }
-    }
-    let c = cos.iter().sum::<f64>() / cos.len().max(1) as f64;
-    let sd = (cos.iter().map(|x| (x - c).powi(2)).sum::<f64>() / cos.len().max(1) as f64).sqrt();
-    let b = (n * steps) as f64;
-    println!(
-        "mean pairwise cosine c = {c:.4} (sd {sd:.4} over {} pairs)",
-        cos.len()
-    );
-    if c > 0.0 {
-        println!(
-            "signal share of |g|² at B = {b:.0}: {c:.4}; batch for signal = noise: {:.3e} samples ({:.0}x)",
-            b * (1.0 - c) / c,
-            (1.0 - c) / c
-        );
-    } else {
-        println!("no common direction measurable at this batch size");
-    }
+    signal_share(&grads, (n * steps) as f64);
 
     // The PPO direction of all rollouts together, and the reward along it.
     let all = union(&batches);
@@ -140,36 +118,7 @@ fn main() {
     println!(
         "reward per step along the update direction (common random numbers), unchanged: {base:.6}"
     );
-    println!("| per-weight RMS step ε | towards the update | against it | a random direction |");
-    println!("|---|---|---|---|");
-    let mut noise_rng = ChaCha8Rng::seed_from_u64(99);
-    let payload = learner.actor.payload();
-    let noise: Vec<f32> = (0..payload.len())
-        .map(|_| host_trainer::rng::normal(&mut noise_rng))
-        .collect();
-    for eps in [1e-5, 3e-5, 1e-4, 3e-4, 1e-3] {
-        let mut row = Vec::new();
-        for sign in [1.0, -1.0] {
-            let lr = sign * eps / rms;
-            let grads = learner.actor_gradients(&all, &config.ppo);
-            let stepped = SgdConfig::new()
-                .init()
-                .step(lr, learner.actor.clone(), grads);
-            let r = reward_per_step(&stepped.payload(), &arch, &std, &config);
-            if eps == 1e-4 && sign > 0.0 {
-                action_change(&payload, &stepped.payload(), &arch, &all.obs);
-            }
-            row.push(format!("{r:.6} ({:+.1}%)", 100.0 * (r - base) / base.abs()));
-        }
-        let random: Vec<f32> = payload
-            .iter()
-            .zip(&noise)
-            .map(|(w, z)| w + eps as f32 * z)
-            .collect();
-        let r = reward_per_step(&random, &arch, &std, &config);
-        row.push(format!("{r:.6} ({:+.1}%)", 100.0 * (r - base) / base.abs()));
-        println!("| {eps:.0e} | {} | {} | {} |", row[0], row[1], row[2]);
-    }
+    reward_along_the_update(&learner, &all, &arch, &std, &config, rms, base);
 
     // Past the peak, does the estimate point back? The gradient at θ stepped by ε towards
     // the update (the same critic), against the direction at θ.
@@ -192,6 +141,79 @@ fn main() {
             "after a step of ε = {eps:.0e} towards the update: cosine of the new gradient with the old direction {:?}",
             cos.iter().map(|c| format!("{c:+.3}")).collect::<Vec<_>>()
         );
+    }
+}
+
+/// The mean pairwise cosine `c` of the rollouts' gradients `grads`, and what it says of the
+/// batch `b` (samples): the signal's share of |g|² and the batch at which signal = noise.
+fn signal_share(grads: &[Vec<f32>], b: f64) {
+    let k = grads.len();
+    let mut cos = Vec::new();
+    for i in 0..k {
+        for j in i + 1..k {
+            let c = dot(&grads[i], &grads[j])
+                / (dot(&grads[i], &grads[i]) * dot(&grads[j], &grads[j])).sqrt();
+            cos.push(c);
+        }
+    }
+    let c = cos.iter().sum::<f64>() / cos.len().max(1) as f64;
+    let sd = (cos.iter().map(|x| (x - c).powi(2)).sum::<f64>() / cos.len().max(1) as f64).sqrt();
+    println!(
+        "mean pairwise cosine c = {c:.4} (sd {sd:.4} over {} pairs)",
+        cos.len()
+    );
+    if c > 0.0 {
+        println!(
+            "signal share of |g|² at B = {b:.0}: {c:.4}; batch for signal = noise: {:.3e} samples ({:.0}x)",
+            b * (1.0 - c) / c,
+            (1.0 - c) / c
+        );
+    } else {
+        println!("no common direction measurable at this batch size");
+    }
+}
+
+/// The reward per step after SGD steps of several per-weight RMS sizes towards the update
+/// `all` gives, against it, and in a random direction, as a Markdown table (`base`: the
+/// reward unchanged; `rms`: the gradient's per-weight RMS).
+fn reward_along_the_update(
+    learner: &Learner,
+    all: &Batch,
+    arch: &Architecture,
+    std: &[f32],
+    config: &TrainConfig,
+    rms: f64,
+    base: f64,
+) {
+    println!("| per-weight RMS step ε | towards the update | against it | a random direction |");
+    println!("|---|---|---|---|");
+    let mut noise_rng = ChaCha8Rng::seed_from_u64(99);
+    let payload = learner.actor.payload();
+    let noise: Vec<f32> = (0..payload.len())
+        .map(|_| host_trainer::rng::normal(&mut noise_rng))
+        .collect();
+    for eps in [1e-5, 3e-5, 1e-4, 3e-4, 1e-3] {
+        let mut row = Vec::new();
+        for sign in [1.0, -1.0] {
+            let lr = sign * eps / rms;
+            let grads = learner.actor_gradients(all, &config.ppo);
+            let stepped = SgdConfig::new()
+                .init()
+                .step(lr, learner.actor.clone(), grads);
+            let r = reward_per_step(&stepped.payload(), arch, std, config);
+            if eps == 1e-4 && sign > 0.0 {
+                action_change(&payload, &stepped.payload(), arch, &all.obs);
+            }
+            row.push(format!("{r:.6} ({:+.1}%)", 100.0 * (r - base) / base.abs()));
+        }
+        let random: Vec<f32> = payload
+            .iter()
+            .zip(&noise)
+            .map(|(w, z)| w + eps as f32 * z)
+            .collect();
+        let r = reward_per_step(&random, arch, std, config);
+        row.push(format!("{r:.6} ({:+.1}%)", 100.0 * (r - base) / base.abs()));
+        println!("| {eps:.0e} | {} | {} | {} |", row[0], row[1], row[2]);
     }
 }
 

@@ -551,8 +551,12 @@ impl TrainConfig {
     /// schema later must be left out of the canonical TOML at its default, or every earlier
     /// blob's hash stops matching its config (`host-trainer/tests/shipped_policies.rs`
     /// catches that).
+    ///
+    /// Every config this crate parses or builds serialises (a test round-trips each committed
+    /// one); were one not to, its `Debug` text is hashed instead, so that two different
+    /// configs never share the hash of an empty text and a resume cannot accept a changed one.
     pub fn hash(&self) -> u64 {
-        let canonical = toml::to_string(self).unwrap_or_default();
+        let canonical = toml::to_string(self).unwrap_or_else(|e| format!("{e}: {self:?}"));
         canonical.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
             (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
         })

@@ -13,9 +13,22 @@ pub enum TrainError {
     OutDir(String),
     /// A checkpoint could not be used.
     Checkpoint(String),
-    /// The configuration cannot be trained by this trainer.
-    Unsupported(String),
-    /// The trained network could not be exported.
+    /// The configuration cannot be trained (a row outside Table 1).
+    Config(String),
+    /// The environment could not be built (sitl's reason: a field, the opponent's path).
+    Env(sitl::env::EnvError),
+    /// A blob the config names (`what`: a teacher, a student) cannot be used, and why.
+    Blob {
+        /// The config's field and the blob's path.
+        what: String,
+        /// Why not.
+        reason: String,
+    },
+    /// The policy and the environment disagree while flying (observation sizes, an
+    /// observation the policy cannot act on, a malformed step).
+    Rollout(String),
+    /// A network could not be exported or carried between its forms (blob payload, int8
+    /// grid, `burn` module).
     Export(String),
 }
 
@@ -23,10 +36,20 @@ impl core::fmt::Display for TrainError {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         match self {
             Self::Io(p, e) => write!(f, "{}: {e}", p.display()),
-            Self::OutDir(m) | Self::Checkpoint(m) | Self::Unsupported(m) | Self::Export(m) => {
-                f.write_str(m)
-            }
+            Self::Env(e) => write!(f, "the environment: {e}"),
+            Self::Blob { what, reason } => write!(f, "{what}: {reason}"),
+            Self::OutDir(m)
+            | Self::Checkpoint(m)
+            | Self::Config(m)
+            | Self::Rollout(m)
+            | Self::Export(m) => f.write_str(m),
         }
+    }
+}
+
+impl From<sitl::env::EnvError> for TrainError {
+    fn from(e: sitl::env::EnvError) -> Self {
+        Self::Env(e)
     }
 }
 

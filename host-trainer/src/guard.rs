@@ -28,7 +28,7 @@ pub fn measured_return(
         .map_err(|e| TrainError::Export(format!("actor does not load as a blob: {e}")))?;
     let mut c = config.env_config(seed);
     c.num_envs = guard.envs;
-    let mut env = VecEnv::new(c).map_err(|e| TrainError::Unsupported(e.to_string()))?;
+    let mut env = VecEnv::new(c)?;
     let mut rng = generator(seed, 7);
     let mut rollout = Rollout::new(guard.envs, env.obs_dim());
     if guard.warmup_steps > 0 {

@@ -116,7 +116,7 @@ fn forward_payload(
         return Ok(payload);
     }
     firmware_core::blob::int8_grid(arch, &payload)
-        .map_err(|e| TrainError::Unsupported(format!("quantisation-aware imitation: {e}")))
+        .map_err(|e| TrainError::Export(format!("quantisation-aware imitation: {e}")))
 }
 
 /// A copy of `actor` (σ kept) holding `payload`, with parameters of its own.
@@ -127,7 +127,7 @@ fn actor_holding<A: PolicyNet>(
     device: &Device,
 ) -> Result<A, TrainError> {
     A::from_payload(arch, payload, &actor.std(), device)
-        .ok_or_else(|| TrainError::Unsupported("imitation: actor copy".into()))
+        .ok_or_else(|| TrainError::Export("imitation: the actor's copy does not load".into()))
 }
 
 /// The forward network of one regression step: the actor itself, or under
@@ -212,21 +212,20 @@ impl Teacher {
                 Track::figure_eight(),
             ))));
         };
-        let raw = std::fs::read(path).map_err(|e| {
-            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
-        })?;
+        let raw = std::fs::read(path).map_err(crate::error::io(std::path::Path::new(path)))?;
+        let refused = |reason: String| TrainError::Blob {
+            what: format!("warm_start.teacher_blob '{path}'"),
+            reason,
+        };
         // Parsed once; the policy views the weights in place for the rest of the process.
         let bytes = sitl::env::interned(&firmware_core::blob::AlignedBytes::new(&raw));
-        let blob = firmware_core::blob::Blob::parse(bytes.as_bytes()).map_err(|e| {
-            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
-        })?;
-        let policy = blob.policy().map_err(|e| {
-            TrainError::Unsupported(format!("warm_start.teacher_blob '{path}': {e}"))
-        })?;
+        let blob = firmware_core::blob::Blob::parse(bytes.as_bytes())
+            .map_err(|e| refused(e.to_string()))?;
+        let policy = blob.policy().map_err(|e| refused(e.to_string()))?;
         if policy.is_recurrent() || blob.header().observation.layout.needs_opponent() {
-            return Err(TrainError::Unsupported(format!(
-                "warm_start.teacher_blob '{path}': the teacher must be a feed-forward time-trial policy"
-            )));
+            return Err(refused(
+                "the teacher must be a feed-forward time-trial policy".into(),
+            ));
         }
         Ok(Self::Blob {
             policy: Box::new(policy),
@@ -288,7 +287,7 @@ fn collect_round(
             let mean = Observation::from_values(&obs[e * obs_dim..(e + 1) * obs_dim])
                 .and_then(|o| policy.act(&o, &mut memory[e]))
                 .ok_or_else(|| {
-                    TrainError::Unsupported(format!(
+                    TrainError::Rollout(format!(
                         "imitation: the student does not take the environment's {obs_dim} observations"
                     ))
                 })?;
@@ -307,7 +306,7 @@ fn collect_round(
             .keep
             .extend(previous_done.iter().map(|d| if *d { 0.0 } else { 1.0 }));
         env.step(&executed)
-            .map_err(|e| TrainError::Unsupported(e.to_string()))?;
+            .map_err(|e| TrainError::Rollout(e.to_string()))?;
         previous_done.copy_from_slice(env.dones());
         for (m, _) in memory.iter_mut().zip(env.dones()).filter(|(_, d)| **d) {
             m.clear();
@@ -342,125 +341,45 @@ fn round_line(
 /// The student a round flies: its weights (on the int8 grid under `quantization_aware`)
 /// viewed by firmware-core.
 fn flying_policy<'w>(payload: &'w [f32], arch: &Architecture) -> Result<Policy<'w>, TrainError> {
-    Policy::from_payload(arch, payload)
-        .map_err(|e| TrainError::Unsupported(format!("imitation: {e}")))
+    Policy::from_payload(arch, payload).map_err(|e| TrainError::Export(format!("imitation: {e}")))
 }
 
-/// Runs the warm start on `actor` and returns the student (σ unchanged) with the rounds'
-/// statistics; `log` receives one line per round with the round's student (its weights as
-/// it flies: on the int8 grid under `quantization_aware`).
-pub fn imitate(
-    mut actor: Actor,
+/// The one DAgger loop of both warm starts: every round the student (as it flies: on the
+/// int8 grid under `quantization_aware`) and the teacher fly a round on the config's
+/// environment (a recurrent student from fresh spawns, so its state starts at zero), the
+/// teacher labels the states, the data is kept by `fit`, and `warm.epochs` passes of `fit`
+/// regress the student's mean onto the labels. Returns the student (σ unchanged) with the
+/// rounds' statistics; `log` receives one line per round with the round's student.
+fn dagger<A: PolicyNet>(
+    mut actor: A,
+    fit: &mut dyn Regression<A>,
     arch: &Architecture,
     config: &TrainConfig,
     warm: &WarmStart,
     device: &Device,
     log: &mut dyn FnMut(&ImitationRound, &[f32]),
-) -> Result<(Actor, Vec<ImitationRound>), TrainError> {
+) -> Result<(A, Vec<ImitationRound>), TrainError> {
     let (teacher, mut env, mut rng) = set_up(config, warm)?;
-    let obs_dim = env.obs_dim();
-    let mut optim = adam();
-    let mut data_obs: Vec<f32> = Vec::new();
-    let mut data_act: Vec<f32> = Vec::new();
     let mut rounds = Vec::new();
     for round in 0..warm.rounds {
         let payload = forward_payload(actor.payload(), arch, warm)?;
         let policy = flying_policy(&payload, arch)?;
+        if A::RECURRENT {
+            env.respawn_all();
+        }
         let (flown, teacher_share) =
             collect_round(&mut env, &teacher, &policy, warm, round, &mut rng)?;
         let stats = env.take_stats();
-        data_obs.extend_from_slice(&flown.obs);
-        data_act.extend_from_slice(&flown.labels);
-        let excess = (data_act.len() / ACTION_DIM).saturating_sub(warm.max_samples);
-        data_obs.drain(..excess * obs_dim);
-        data_act.drain(..excess * ACTION_DIM);
-
-        // Regression of the mean onto the labels.
-        let count = data_act.len() / ACTION_DIM;
-        let mut order: Vec<usize> = (0..count).collect();
-        let mut mse = 0.0;
-        for _ in 0..warm.epochs {
-            order.shuffle(&mut rng);
-            let (mut sum, mut batches) = (0.0, 0.0);
-            for idx in order.chunks(warm.minibatch) {
-                let mut o = Vec::with_capacity(idx.len() * obs_dim);
-                let mut a = Vec::with_capacity(idx.len() * ACTION_DIM);
-                for &i in idx {
-                    o.extend_from_slice(&data_obs[i * obs_dim..(i + 1) * obs_dim]);
-                    a.extend_from_slice(&data_act[i * ACTION_DIM..(i + 1) * ACTION_DIM]);
-                }
-                let obs_t =
-                    Tensor::<2>::from_data(TensorData::new(o, [idx.len(), obs_dim]), device);
-                let act_t =
-                    Tensor::<2>::from_data(TensorData::new(a, [idx.len(), ACTION_DIM]), device);
-                let forward = forward_actor(&actor, arch, warm, device)?;
-                let loss = (forward.mean(obs_t) - act_t).square().mean();
-                sum += f64::from(values(loss.clone().inner()).first().copied().unwrap_or(0.0));
-                batches += 1.0;
-                let grads = GradientsParams::from_grads(loss.backward(), &forward);
-                let grads = to_latent(&forward, grads, &actor, warm);
-                actor = optim.step(warm.round_learning_rate(round), actor, grads);
-            }
-            mse = sum / f64::max(batches, 1.0);
-        }
-        let r = round_line(round, teacher_share, count, (mse, 0.0), &stats, env.dt_s());
-        log(&r, &forward_payload(actor.payload(), arch, warm)?);
-        rounds.push(r);
-    }
-    Ok((end_of_stage(actor, arch, warm, device)?, rounds))
-}
-
-/// The warm start of a recurrent actor (rows E-G): DAgger as [`imitate`], on the config's
-/// environment (the race, for stage 2), each round from fresh spawns, the student acting
-/// through firmware-core with its state carried step by step. The regression runs the
-/// student over windows of `ppo.steps_per_env` steps with backpropagation through each
-/// window; the state each window starts from is recomputed by the current student at every
-/// epoch (from zero at the round's start), so old rounds are not fitted from stale states.
-pub fn imitate_recurrent(
-    mut actor: RecurrentActor,
-    arch: &Architecture,
-    config: &TrainConfig,
-    warm: &WarmStart,
-    device: &Device,
-    log: &mut dyn FnMut(&ImitationRound, &[f32]),
-) -> Result<(RecurrentActor, Vec<ImitationRound>), TrainError> {
-    let (teacher, mut env, mut rng) = set_up(config, warm)?;
-    let n = env.num_envs();
-    let mut fit = RecurrentFit {
-        arch,
-        warm,
-        device,
-        n,
-        obs_dim: env.obs_dim(),
-        window: config.ppo.steps_per_env.max(1),
-        optim: adam(),
-    };
-    let mut data: Vec<Round> = Vec::new();
-    let mut rounds = Vec::new();
-    for round in 0..warm.rounds {
-        let payload = forward_payload(actor.net.payload(), arch, warm)?;
-        let policy = flying_policy(&payload, arch)?;
-        env.respawn_all();
-        let (flown, teacher_share) =
-            collect_round(&mut env, &teacher, &policy, warm, round, &mut rng)?;
-        let stats = env.take_stats();
-        data.push(flown);
-        let per_round = n * warm.steps_per_env;
-        let keep_rounds = (warm.max_samples / per_round.max(1)).max(1);
-        if data.len() > keep_rounds {
-            data.drain(..data.len() - keep_rounds);
-        }
-
+        let samples = fit.keep(flown);
         let (mut mse, mut mse_first_epoch) = (0.0, 0.0);
         for epoch in 0..warm.epochs {
-            let (a, epoch_mse) = fit.epoch(actor, &data, round, &mut rng)?;
+            let (a, epoch_mse) = fit.epoch(actor, round, &mut rng)?;
             actor = a;
             mse = epoch_mse;
-            if epoch == 0 {
+            if epoch == 0 && A::RECURRENT {
                 mse_first_epoch = mse;
             }
         }
-        let samples = data.len() * per_round;
         let r = round_line(
             round,
             teacher_share,
@@ -469,10 +388,130 @@ pub fn imitate_recurrent(
             &stats,
             env.dt_s(),
         );
-        log(&r, &forward_payload(actor.net.payload(), arch, warm)?);
+        log(&r, &forward_payload(actor.payload(), arch, warm)?);
         rounds.push(r);
     }
     Ok((end_of_stage(actor, arch, warm, device)?, rounds))
+}
+
+/// What a kind of student brings to [`dagger`]: how the flown rounds are kept and how one
+/// epoch regresses the student onto them.
+trait Regression<A> {
+    /// Keeps the round `flown`, the oldest data dropped beyond `warm_start.max_samples`;
+    /// returns the samples kept.
+    fn keep(&mut self, flown: Round) -> usize;
+    /// One pass over the kept data in DAgger round `round`: the student and the pass's mean
+    /// squared error.
+    fn epoch(&mut self, actor: A, round: u32, rng: &mut ChaCha8Rng)
+    -> Result<(A, f64), TrainError>;
+}
+
+/// The warm start of a feed-forward actor (rows A-D): [`dagger`] with the samples kept
+/// flat and regressed in shuffled minibatches.
+pub fn imitate(
+    actor: Actor,
+    arch: &Architecture,
+    config: &TrainConfig,
+    warm: &WarmStart,
+    device: &Device,
+    log: &mut dyn FnMut(&ImitationRound, &[f32]),
+) -> Result<(Actor, Vec<ImitationRound>), TrainError> {
+    let mut fit = FeedForwardFit {
+        arch,
+        warm,
+        device,
+        obs_dim: config.observation_spec().dim(),
+        optim: adam(),
+        obs: Vec::new(),
+        labels: Vec::new(),
+        order: Vec::new(),
+    };
+    dagger(actor, &mut fit, arch, config, warm, device, log)
+}
+
+/// The feed-forward regression of one warm-start stage and the samples it keeps.
+struct FeedForwardFit<'a> {
+    arch: &'a Architecture,
+    warm: &'a WarmStart,
+    device: &'a Device,
+    obs_dim: usize,
+    optim: ModuleOptimizer,
+    obs: Vec<f32>,
+    labels: Vec<f32>,
+    /// The samples' order, shuffled in place by every epoch of a round (so each epoch's
+    /// permutation follows from the last).
+    order: Vec<usize>,
+}
+
+impl Regression<Actor> for FeedForwardFit<'_> {
+    fn keep(&mut self, flown: Round) -> usize {
+        self.obs.extend_from_slice(&flown.obs);
+        self.labels.extend_from_slice(&flown.labels);
+        let excess = (self.labels.len() / ACTION_DIM).saturating_sub(self.warm.max_samples);
+        self.obs.drain(..excess * self.obs_dim);
+        self.labels.drain(..excess * ACTION_DIM);
+        let count = self.labels.len() / ACTION_DIM;
+        self.order = (0..count).collect();
+        count
+    }
+
+    fn epoch(
+        &mut self,
+        mut actor: Actor,
+        round: u32,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<(Actor, f64), TrainError> {
+        let (obs_dim, warm, device) = (self.obs_dim, self.warm, self.device);
+        self.order.shuffle(rng);
+        let (mut sum, mut batches) = (0.0, 0.0);
+        for idx in self.order.chunks(warm.minibatch) {
+            let mut o = Vec::with_capacity(idx.len() * obs_dim);
+            let mut a = Vec::with_capacity(idx.len() * ACTION_DIM);
+            for &i in idx {
+                o.extend_from_slice(&self.obs[i * obs_dim..(i + 1) * obs_dim]);
+                a.extend_from_slice(&self.labels[i * ACTION_DIM..(i + 1) * ACTION_DIM]);
+            }
+            let obs_t = Tensor::<2>::from_data(TensorData::new(o, [idx.len(), obs_dim]), device);
+            let act_t = Tensor::<2>::from_data(TensorData::new(a, [idx.len(), ACTION_DIM]), device);
+            let forward = forward_actor(&actor, self.arch, warm, device)?;
+            let loss = (forward.mean(obs_t) - act_t).square().mean();
+            sum += f64::from(values(loss.clone().inner()).first().copied().unwrap_or(0.0));
+            batches += 1.0;
+            let grads = GradientsParams::from_grads(loss.backward(), &forward);
+            let grads = to_latent(&forward, grads, &actor, warm);
+            actor = self
+                .optim
+                .step(warm.round_learning_rate(round), actor, grads);
+        }
+        Ok((actor, sum / f64::max(batches, 1.0)))
+    }
+}
+
+/// The warm start of a recurrent actor (rows E-G): [`dagger`] on the config's environment
+/// (the race, for stage 2), each round from fresh spawns, the student acting through
+/// firmware-core with its state carried step by step. The regression runs the student over
+/// windows of `ppo.steps_per_env` steps with backpropagation through each window; the state
+/// each window starts from is recomputed by the current student at every epoch (from zero at
+/// the round's start), so old rounds are not fitted from stale states.
+pub fn imitate_recurrent(
+    actor: RecurrentActor,
+    arch: &Architecture,
+    config: &TrainConfig,
+    warm: &WarmStart,
+    device: &Device,
+    log: &mut dyn FnMut(&ImitationRound, &[f32]),
+) -> Result<(RecurrentActor, Vec<ImitationRound>), TrainError> {
+    let mut fit = RecurrentFit {
+        arch,
+        warm,
+        device,
+        n: config.env.num_envs,
+        obs_dim: config.observation_spec().dim(),
+        window: config.ppo.steps_per_env.max(1),
+        optim: adam(),
+        data: Vec::new(),
+    };
+    dagger(actor, &mut fit, arch, config, warm, device, log)
 }
 
 /// A minibatch of the recurrent regression: the windows of `envs` in round `round` from
@@ -495,13 +534,39 @@ struct RecurrentFit<'a> {
     /// Steps per window (backpropagation through time).
     window: usize,
     optim: ModuleOptimizer,
+    /// The rounds kept, oldest first.
+    data: Vec<Round>,
+}
+
+impl Regression<RecurrentActor> for RecurrentFit<'_> {
+    fn keep(&mut self, flown: Round) -> usize {
+        self.data.push(flown);
+        let per_round = self.n * self.warm.steps_per_env;
+        let keep_rounds = (self.warm.max_samples / per_round.max(1)).max(1);
+        if self.data.len() > keep_rounds {
+            self.data.drain(..self.data.len() - keep_rounds);
+        }
+        self.data.len() * per_round
+    }
+
+    fn epoch(
+        &mut self,
+        actor: RecurrentActor,
+        round: u32,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<(RecurrentActor, f64), TrainError> {
+        let data = std::mem::take(&mut self.data);
+        let result = self.fit_epoch(actor, &data, round, rng);
+        self.data = data;
+        result
+    }
 }
 
 impl RecurrentFit<'_> {
     /// One pass over `data` in DAgger round `round`: the windows' starting states from the
     /// current student, then every window minibatch in a random order. Returns the student
     /// and the epoch's mean squared error.
-    fn epoch(
+    fn fit_epoch(
         &mut self,
         mut actor: RecurrentActor,
         data: &[Round],

@@ -91,7 +91,7 @@ pub fn collect_rollout(
 ) -> Result<(), TrainError> {
     let obs_dim = env.obs_dim();
     if policy.obs_dim() != obs_dim {
-        return Err(TrainError::Unsupported(format!(
+        return Err(TrainError::Rollout(format!(
             "the policy observes {} values, the environment gives {obs_dim}",
             policy.obs_dim()
         )));
@@ -162,13 +162,13 @@ pub fn collect_rollout(
             });
         let refused = refused.swap(0, std::sync::atomic::Ordering::Relaxed);
         if refused > 0 {
-            return Err(TrainError::Unsupported(format!(
+            return Err(TrainError::Rollout(format!(
                 "the policy could not act on {refused} observations of a step (not finite?): the rollout stops rather than fly stale actions"
             )));
         }
         rollout.actions.extend_from_slice(&actions);
         env.step(&actions)
-            .map_err(|e| TrainError::Unsupported(e.to_string()))?;
+            .map_err(|e| TrainError::Rollout(e.to_string()))?;
         rollout.rewards.extend_from_slice(env.rewards());
         rollout.dones.extend_from_slice(env.dones());
         rollout.timeouts.extend_from_slice(env.timeouts());

@@ -14,7 +14,7 @@ impl TrainConfig {
     /// The Table 1 row of `run.row` (A in a time trial, B to G in a race).
     pub fn table_row(&self) -> Result<TableRow, TrainError> {
         TableRow::from_letter(self.run.row).ok_or_else(|| {
-            TrainError::Unsupported(format!(
+            TrainError::Config(format!(
                 "run.row '{}': Table 1 has rows A to G",
                 self.run.row
             ))
@@ -60,6 +60,6 @@ impl TrainConfig {
     /// The environment of the run, seeded with `seed`: a time trial, or a race against
     /// `race.opponent` (read here; a blob that does not fly is refused).
     pub fn make_env(&self, seed: u64) -> Result<VecEnv, TrainError> {
-        VecEnv::new(self.env_config(seed)).map_err(|e| TrainError::Unsupported(e.to_string()))
+        Ok(VecEnv::new(self.env_config(seed))?)
     }
 }

@@ -148,8 +148,7 @@ fn start<A: Imitate, C: ValueNet>(
     VecEnv::new(EnvConfig {
         num_envs: 1,
         ..config.env_config(0)
-    })
-    .map_err(|e| TrainError::Unsupported(e.to_string()))?;
+    })?;
     let device = options.device.clone();
     if options.resume {
         return dir.load_checkpoint(config, &arch, &device);

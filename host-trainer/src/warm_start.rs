@@ -78,8 +78,9 @@ pub(crate) fn warm_start<A: Imitate, C: ValueNet>(
         before = last;
     }
     if let Some((round, payload)) = log.best.take() {
-        actor = A::from_payload(&arch, &payload, &actor.std(), device)
-            .ok_or_else(|| TrainError::Unsupported("warm start: best round's weights".into()))?;
+        actor = A::from_payload(&arch, &payload, &actor.std(), device).ok_or_else(|| {
+            TrainError::Export("warm start: the best round's weights do not load".into())
+        })?;
         console.say(format!(
             "the warm start ends with round {}'s student, the referee's best",
             round.round

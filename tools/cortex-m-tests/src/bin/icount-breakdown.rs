@@ -69,9 +69,16 @@ mod bench {
         );
     }
 
-    /// The pieces of a step measured on their own.
+    /// The pieces of a step measured on their own: the observation and the policy per row,
+    /// then each layer and activation.
     pub fn pieces(counter: &Counter) {
         hprintln!("pieces of a step ({} calls each):", FLIGHT_STEPS);
+        policy_pieces(counter);
+        layer_pieces(counter);
+    }
+
+    /// `ObservationSpec::observe` and `Policy::act` of rows A and G over a flight.
+    fn policy_pieces(counter: &Counter) {
         for (row, blob) in [('A', BLOB_A), ('G', BLOB_G)] {
             let Ok(b) = Blob::parse(blob) else { return };
             let Ok(policy) = b.policy() else { return };
@@ -101,7 +108,10 @@ mod bench {
                 "weight",
             );
         }
+    }
 
+    /// Each layer of rows A and G, and the activations, on inputs of their sizes.
+    fn layer_pieces(counter: &Counter) {
         let (Ok(a), Ok(g)) = (Blob::parse(BLOB_A), Blob::parse(BLOB_G)) else {
             return;
         };
