@@ -47,7 +47,4 @@ pub use math::{Quat, Vec3};
 pub use observation::{Observation, ObservationLayout, ObservationSpec};
 pub use policy::{Architecture, Policy, PolicyState, TableRow};
 pub use track::{Centerline, Gate, GateCrossing, GateEvent, GateProgress, Track};
-pub use vehicle::{ActionMap, Cf2x, MotorCommand, VehicleState};
-
-/// The control period of the paper (50 Hz), in ns.
-pub const PAPER_CONTROL_PERIOD_NS: u32 = 20_000_000;
+pub use vehicle::{ActionMap, Cf2x, MotorCommand, PAPER_CONTROL_PERIOD_NS, VehicleState};

@@ -4,6 +4,9 @@
 use crate::math::{Quat, Vec3};
 use serde::{Deserialize, Serialize};
 
+/// The control period of the paper (50 Hz), in ns.
+pub const PAPER_CONTROL_PERIOD_NS: u32 = 20_000_000;
+
 /// The state of one quadrotor, as a controller receives it (world frame z up).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct VehicleState {

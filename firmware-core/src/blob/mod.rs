@@ -112,7 +112,7 @@ impl BlobHeader {
             architecture: Architecture::table1(row),
             observation: ObservationSpec::paper(row.observation_layout()),
             action_map: ActionMap::PAPER,
-            control_period_ns: crate::PAPER_CONTROL_PERIOD_NS,
+            control_period_ns: crate::vehicle::PAPER_CONTROL_PERIOD_NS,
             dtype: WeightDtype::F32,
             provenance,
             payload_len: 0,

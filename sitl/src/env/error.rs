@@ -41,7 +41,7 @@ impl From<EnvConfigError> for EnvError {
     }
 }
 
-/// The actions given to [`VecEnv::step`] do not have `num_envs × 4` values.
+/// The actions given to [`super::VecEnv::step`] do not have `num_envs × 4` values.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ActionShapeError {
     /// Values expected.
@@ -62,7 +62,7 @@ impl core::fmt::Display for ActionShapeError {
 
 impl std::error::Error for ActionShapeError {}
 
-/// The counts given to [`VecEnv::set_episode_steps`] are not one per env.
+/// The counts given to [`super::VecEnv::set_episode_steps`] are not one per env.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct EpisodeStepsError {
     /// Values expected (`num_envs`).
