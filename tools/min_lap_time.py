@@ -38,7 +38,7 @@ centre, m), its speed there, the path length and the height range; then what the
 environment's reward pays per second for each line (progress at the paper's 0.5 per m, the
 pass term at weights 1, 0.5 and 0), which says whether the reward prefers the faster line.
 
-    cargo run --release -p sitl -- eval --ego policies/stage1_rl.blob --trace t.json
+    cargo run --release -p sitl -- eval --ego policies/stage1.blob --trace t.json
     python3 tools/min_lap_time.py --compare t.json
 """
 

@@ -8,7 +8,8 @@
 //! "The faster half teaches the slower").
 //!
 //! `cargo run --release -p host-trainer --example mirror_images -- \
-//!    --config policies/stage1_rl/config.toml --blob policies/stage1_rl.blob`
+//!    --config C --blob B` (run e7's blob and config, removed from
+//!    policies/ on 2026-12-05: `git show 0b4e8a4:policies/stage1_rl.blob`)
 
 use firmware_core::blob::{AlignedBytes, Blob};
 use firmware_core::observation::Observation;

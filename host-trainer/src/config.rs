@@ -244,7 +244,7 @@ pub struct Selection {
     /// Spawn of the validation episodes: "along-track" (a random point of the centreline,
     /// at rest) or "stage2" (at rest 2 m or 1 m before a random gate); not the stage-1
     /// spawn, the referee's.
-    pub spawn: String,
+    pub spawn: sitl::referee::SpawnMode,
     /// Episodes of 45 s per validation.
     pub episodes: u32,
     /// Seed of the validation's spawns (pick one the final evaluations do not use).

@@ -53,7 +53,7 @@ pub fn selection_eval(blob: &[u8], preset: Preset, select: &Selection) -> Option
         episodes: select.episodes,
         seconds: 45.0,
         seed: select.seed,
-        spawn: Some(SpawnMode::by_name(&select.spawn)?),
+        spawn: Some(select.spawn),
     };
     Some(report(&spec, None, &eval))
 }
@@ -168,7 +168,7 @@ mod tests {
         let run = RunConfig {
             keep_best: true,
             select: Some(Selection {
-                spawn: "along-track".into(),
+                spawn: SpawnMode::AlongTrack,
                 episodes: 10,
                 seed: 7,
                 from_iteration: 20,

@@ -238,7 +238,7 @@ fn train(config: &Path, options: RunOptions) -> Result<(), String> {
                     sel.from_iteration,
                     s.iterations,
                     sel.episodes,
-                    sel.spawn,
+                    sel.spawn.name(),
                     sel.seed,
                     b.select_crash_rate.unwrap_or(0.0),
                     lap_text(b.select_mean_lap_s)

@@ -246,7 +246,7 @@ fn a_selection_exports_the_validations_best_across_a_resume() {
     config.run.checkpoint_every = 2;
     config.run.eval_every = 1;
     let select = Selection {
-        spawn: "along-track".into(),
+        spawn: sitl::referee::SpawnMode::AlongTrack,
         episodes: 6,
         seed: 7,
         from_iteration: 3,

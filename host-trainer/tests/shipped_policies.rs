@@ -16,64 +16,11 @@ fn root() -> &'static Path {
 
 /// A shipped blob, its config (from the repository root) and the best lap the referee
 /// recorded for it (s).
-const SHIPPED: &[(&str, &str, f64)] = &[
-    (
-        "stage1_imitation",
-        "host-trainer/configs/experiments/stage1_imitation.toml",
-        10.94,
-    ),
-    ("stage1_rl", "policies/stage1_rl/config.toml", 8.40),
-    ("stage1_fold", "policies/stage1_fold/config.toml", 7.74),
-];
-
-/// `policies/stage1_rl.blob` is PPO from a random network with the committed recipe: its
-/// run's config is `configs/experiments/stage1_rl.toml` but for the run's name (e7).
-#[test]
-fn the_rl_policy_is_the_committed_recipe() {
-    let run = TrainConfig::load(&root().join("policies/stage1_rl/config.toml")).unwrap();
-    let mut recipe =
-        TrainConfig::load(&root().join("host-trainer/configs/experiments/stage1_rl.toml")).unwrap();
-    assert!(recipe.warm_start.is_none(), "no imitation");
-    recipe.run.name = run.run.name.clone();
-    assert_eq!(recipe.hash(), run.hash());
-}
-
-/// `policies/stage1_fold.blob` is PPO from a random network: run fold1 with the committed
-/// recipe (`configs/experiments/stage1_fold.toml` but for the name), forked at its last iteration into
-/// the blob's config, which changes only the run's name and length, the pass weight and the
-/// σ schedule; the blob observes folded, as it was trained.
-#[test]
-fn the_folded_policy_is_the_committed_recipe_and_its_finish() {
-    let fold1 = TrainConfig::load(&root().join("policies/stage1_fold/config_fold1.toml")).unwrap();
-    let mut recipe =
-        TrainConfig::load(&root().join("host-trainer/configs/experiments/stage1_fold.toml"))
-            .unwrap();
-    assert!(recipe.warm_start.is_none() && recipe.env.fold_mirror);
-    recipe.run.name = fold1.run.name.clone();
-    assert_eq!(recipe.hash(), fold1.hash());
-    let finish = TrainConfig::load(&root().join("policies/stage1_fold/config.toml")).unwrap();
-    let forked: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(root().join("policies/stage1_fold/forked_from.json")).unwrap(),
-    )
-    .unwrap();
-    assert_eq!(
-        forked["iteration"].as_u64(),
-        Some(u64::from(fold1.run.iterations))
-    );
-    assert_eq!(
-        forked["config_hash"].as_str(),
-        Some(format!("{:016x}", fold1.hash()).as_str())
-    );
-    let mut undone = finish.clone();
-    undone.run.name = fold1.run.name.clone();
-    undone.run.iterations = fold1.run.iterations;
-    undone.env.reward.pass = fold1.env.reward.pass;
-    undone.ppo.max_std = fold1.ppo.max_std;
-    undone.ppo.max_std_decay = fold1.ppo.max_std_decay.clone();
-    assert_eq!(undone, fold1);
-    let (raw, _, _) = shipped_blob("stage1_fold", "policies/stage1_fold/config.toml");
-    assert!(folded(&raw));
-}
+const SHIPPED: &[(&str, &str, f64)] = &[(
+    "stage1_imitation",
+    "host-trainer/configs/experiments/stage1_imitation.toml",
+    10.94,
+)];
 
 /// `policies/stage1.blob` (Table 1 row A) is PPO from a random network: the committed
 /// `configs/stage1.toml` and its seed, the actor its validation (`run.select`) chose from the

@@ -61,7 +61,7 @@ impl TrainConfig {
                 eval_every: 20,
                 keep_best: true,
                 select: Some(Selection {
-                    spawn: "along-track".into(),
+                    spawn: sitl::referee::SpawnMode::AlongTrack,
                     episodes: 100,
                     seed: 7,
                     from_iteration: 2000,

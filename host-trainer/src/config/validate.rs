@@ -55,11 +55,10 @@ fn run(c: &TrainConfig) -> Result<(), ConfigError> {
         if c.env.race.is_some() {
             return bad("run.select is for time trials; a race ranks its run.eval_races races");
         }
-        if !matches!(s.spawn.as_str(), "along-track" | "stage2") {
-            return bad(format!(
-                "run.select.spawn '{}' (along-track, stage2; the stage-1 spawn is the referee's)",
-                s.spawn
-            ));
+        if s.spawn == sitl::referee::SpawnMode::Stage1 {
+            return bad(
+                "run.select.spawn 'stage1' (along-track, stage2; the stage-1 spawn is the referee's)",
+            );
         }
         if s.episodes == 0 {
             return bad("run.select.episodes must be positive");
