@@ -10,11 +10,20 @@
 use crate::blob::{Blob, BlobError};
 use crate::math::Vec3;
 use crate::mirror::{MirrorError, TrackMirror, observe_folded, unfold_action};
-use crate::nn::ACTION_DIM;
-use crate::observation::{Observation, ObservationError, ObservationSpec};
+use crate::nn::{ACTION_DIM, LANES};
+use crate::observation::{MAX_OBSERVATION_DIM, Observation, ObservationError, ObservationSpec};
 use crate::policy::{Policy, PolicyState};
 use crate::track::{GateEvent, GateProgress, Track};
 use crate::vehicle::{ActionMap, MotorCommand, VehicleState};
+
+/// A step begun by `Controller::begin_step`: the observation to infer on, and what
+/// `finish_step` needs besides the policy's output.
+#[derive(Clone, Copy, Debug)]
+struct PendingStep {
+    obs: Observation,
+    folded: bool,
+    gate_event: GateEvent,
+}
 
 /// Why a controller cannot be built.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -188,8 +197,24 @@ impl<'w> Controller<'w> {
     /// One control step from the own state and, for policies that observe one, the
     /// opponent's. Never panics: a bad input gives the fail-safe and a fault.
     pub fn step(&mut self, own: &VehicleState, opponent: Option<&VehicleState>) -> StepOutput {
-        // 10 validate: the observation refuses non-finite inputs before any state changes.
-        // 20 target gate, 30 observe
+        match self.begin_step(own, opponent) {
+            Ok(pending) => {
+                let mean = self.policy.act(&pending.obs, &mut self.state);
+                self.finish_step(&pending, mean)
+            }
+            Err(fail_safe) => fail_safe,
+        }
+    }
+
+    /// Steps 10-30 of [`Self::step`]: the inputs validated, the target gate advanced, the
+    /// observation made (or the fail-safe output, when the inputs are refused). The step
+    /// ends with [`Self::finish_step`] on the policy's output for `pending.obs`.
+    #[inline(always)]
+    fn begin_step(
+        &mut self,
+        own: &VehicleState,
+        opponent: Option<&VehicleState>,
+    ) -> Result<PendingStep, StepOutput> {
         let (progress, gate_event, obs) = self.observe_next(own, opponent);
         self.progress = progress;
         let (obs, folded) = match obs {
@@ -200,21 +225,32 @@ impl<'w> Controller<'w> {
                     ObservationError::MissingOpponent => StepFault::MissingOpponent,
                     _ => StepFault::NonFiniteState,
                 };
-                return self.fail_safe(fault, gate_event);
+                return Err(self.fail_safe(fault, gate_event));
             }
         };
         self.previous_position = Some(own.position_m);
-        // 40 infer (in place: no copy of the recurrent state on the stack)
-        let mean = self.policy.act(&obs, &mut self.state);
+        Ok(PendingStep {
+            obs,
+            folded,
+            gate_event,
+        })
+    }
+
+    /// Steps 40-60 of [`Self::step`] from the policy's output `mean` for `pending.obs`
+    /// (the state already advanced): a missing or non-finite output gives the fail-safe.
+    #[inline(always)]
+    fn finish_step(
+        &mut self,
+        pending: &PendingStep,
+        mean: Option<[f32; ACTION_DIM]>,
+    ) -> StepOutput {
         let Some(mean) = mean.filter(|m| m.iter().all(|a| a.is_finite())) else {
-            // Only weights near f32::MAX can overflow; a poisoned state would stay poisoned.
             self.state.clear();
-            return self.fail_safe(StepFault::NonFiniteAction, gate_event);
+            return self.fail_safe(StepFault::NonFiniteAction, pending.gate_event);
         };
-        // 50 clip (and renumber a folded step's action), 60 map to rpm
         let action = unfold_action(
             self.fold.as_ref(),
-            folded,
+            pending.folded,
             &mean.map(|a| a.clamp(-1.0, 1.0)),
         );
         self.previous_action = action;
@@ -222,12 +258,69 @@ impl<'w> Controller<'w> {
             command: self.action_map.command(&action),
             action,
             fault: None,
-            gate_event,
+            gate_event: pending.gate_event,
         }
     }
 
-    /// The gate bookkeeping and the observation the next [`Controller::step`] would make
-    /// from these states, without changing anything.
+    /// [`Self::step`] of [`LANES`] controllers that fly the same `policy` (clones of one
+    /// controller, or controllers built from one blob: the caller's contract), their
+    /// policy evaluated side by side ([`Policy::step_lanes`]): each output is bit for bit
+    /// what `step` gives that controller (the host's batched opponents). When a lane's
+    /// inputs are refused, the other lanes step one by one.
+    #[inline(always)]
+    pub fn step_lanes(
+        policy: &Policy<'w>,
+        mut controllers: [&mut Self; LANES],
+        own: [&VehicleState; LANES],
+        opponent: [Option<&VehicleState>; LANES],
+    ) -> [StepOutput; LANES] {
+        let dim = policy.obs_dim();
+        let mut obs = [0.0f32; MAX_OBSERVATION_DIM * LANES];
+        let mut pending: [Option<PendingStep>; LANES] = [None; LANES];
+        let mut out = [StepOutput {
+            command: MotorCommand::STOP,
+            action: [0.0; ACTION_DIM],
+            fault: None,
+            gate_event: GateEvent::None,
+        }; LANES];
+        let mut all = true;
+        let lanes = controllers
+            .iter_mut()
+            .zip(own.iter().zip(&opponent))
+            .zip(pending.iter_mut().zip(&mut out))
+            .zip(obs.chunks_exact_mut(dim.max(1)));
+        for (((c, (own, opponent)), (pending, out)), row) in lanes {
+            match c.begin_step(own, *opponent) {
+                Ok(p) => {
+                    if let Some(values) = p.obs.as_slice().get(..row.len()) {
+                        row.copy_from_slice(values);
+                    }
+                    *pending = Some(p);
+                }
+                Err(fail_safe) => {
+                    *out = fail_safe;
+                    all = false;
+                }
+            }
+        }
+        let means = if all {
+            let states = controllers.each_mut().map(|c| &mut c.state);
+            policy.step_lanes(obs.get(..dim * LANES).unwrap_or(&[]), states)
+        } else {
+            None
+        };
+        let lanes = controllers.iter_mut().zip(&pending).zip(&mut out);
+        for (l, ((c, p), out)) in lanes.enumerate() {
+            let Some(p) = p else { continue };
+            let mean = match &means {
+                Some(m) => m.get(l).copied(),
+                None => c.policy.act(&p.obs, &mut c.state),
+            };
+            *out = c.finish_step(p, mean);
+        }
+        out
+    }
+
     #[inline(always)]
     fn observe_next(
         &self,

@@ -14,7 +14,8 @@
 
 use crate::format::{BlobError, WeightDtype};
 use crate::nn::{
-    ACTION_DIM, LANES, Lanes, LstmPolicy, LstmStackState, Mlp2, Mlp3, Mlp4, MlpPolicy, WeightReader,
+    ACTION_DIM, LANES, Lanes, LstmPolicy, LstmStackLanes, LstmStackState, Mlp2, Mlp3, Mlp4,
+    MlpPolicy, WeightReader,
 };
 use crate::observation::{Observation, ObservationLayout};
 use serde::{Deserialize, Serialize};
@@ -393,36 +394,50 @@ impl<'w> Policy<'w> {
     /// side (the host's batched rollouts): `obs` holds `LANES` observations of
     /// [`Self::obs_dim`] values one after the other, and lane `l` of the result is bit for
     /// bit `act` of observation `l` (a NaN may be another NaN: which operand's NaN an
-    /// operation keeps is the instruction's choice). `None` for a recurrent policy or
-    /// another length.
+    /// operation keeps is the instruction's choice). `None` for a recurrent policy (see
+    /// [`Self::step_lanes`]) or another length.
     #[inline(always)]
     pub fn act_lanes(&self, obs: &[f32]) -> Option<[[f32; ACTION_DIM]; LANES]> {
-        #[inline(always)]
-        fn lanes<const N: usize>(obs: &[f32]) -> Option<Lanes<N>> {
-            if obs.len() != N * LANES {
-                return None;
-            }
-            let mut x = [[0.0f32; LANES]; N];
-            for (l, o) in obs.chunks_exact(N).enumerate() {
-                for (xk, v) in x.iter_mut().zip(o) {
-                    *xk.get_mut(l)? = *v;
-                }
-            }
-            Some(x)
-        }
         let y = match self {
-            Self::A(p) => p.forward_lanes(&lanes::<17>(obs)?),
-            Self::B(p) => p.forward_lanes(&lanes::<20>(obs)?),
-            Self::C(p) => p.forward_lanes(&lanes::<30>(obs)?),
+            Self::A(p) => p.forward_lanes(&to_lanes::<17>(obs)?),
+            Self::B(p) => p.forward_lanes(&to_lanes::<20>(obs)?),
+            Self::C(p) => p.forward_lanes(&to_lanes::<30>(obs)?),
             Self::E(_) | Self::F(_) | Self::G(_) => return None,
         };
-        let mut means = [[0.0f32; ACTION_DIM]; LANES];
-        for (k, yk) in y.iter().enumerate() {
-            for (m, v) in means.iter_mut().zip(yk) {
-                *m.get_mut(k)? = *v;
+        from_lanes(&y)
+    }
+
+    /// [`Self::act`] of any policy on [`LANES`] observations side by side, advancing each
+    /// lane's recurrent state `states[l]` as `act` would: lane `l` is bit for bit `act` of
+    /// observation `l` from state `l` (NaNs as in [`Self::act_lanes`]). `None`, with every
+    /// state untouched, when `obs` has another length or a state is not this policy's.
+    #[inline(always)]
+    pub fn step_lanes(
+        &self,
+        obs: &[f32],
+        states: [&mut PolicyState; LANES],
+    ) -> Option<[[f32; ACTION_DIM]; LANES]> {
+        match self {
+            Self::A(_) | Self::B(_) | Self::C(_) => self.act_lanes(obs),
+            Self::E(p) => {
+                let x = to_lanes::<30>(obs)?;
+                let (mut views, mut lanes) = gather_lanes(states, PolicyState::lstm1)?;
+                let y = p.step_lanes(&x, &mut lanes);
+                scatter_lanes(&lanes, &mut views, &y)
+            }
+            Self::F(p) => {
+                let x = to_lanes::<30>(obs)?;
+                let (mut views, mut lanes) = gather_lanes(states, PolicyState::lstm2)?;
+                let y = p.step_lanes(&x, &mut lanes);
+                scatter_lanes(&lanes, &mut views, &y)
+            }
+            Self::G(p) => {
+                let x = to_lanes::<30>(obs)?;
+                let (mut views, mut lanes) = gather_lanes(states, PolicyState::lstm2)?;
+                let y = p.step_lanes(&x, &mut lanes);
+                scatter_lanes(&lanes, &mut views, &y)
             }
         }
-        Some(means)
     }
 
     /// One forward step: the Gaussian mean (unclipped) for `obs`, advancing `state`.
@@ -435,6 +450,86 @@ impl<'w> Policy<'w> {
             (Self::E(p), PolicyState::Lstm1(s)) => Some(p.step(obs.as_array::<30>()?, s)),
             (Self::F(p), PolicyState::Lstm2(s)) => Some(p.step(obs.as_array::<30>()?, s)),
             (Self::G(p), PolicyState::Lstm2(s)) => Some(p.step(obs.as_array::<30>()?, s)),
+            _ => None,
+        }
+    }
+}
+
+/// `LANES` observations of `N` values, one after the other, as lanes (`None` for another
+/// length).
+#[inline(always)]
+fn to_lanes<const N: usize>(obs: &[f32]) -> Option<Lanes<N>> {
+    if obs.len() != N * LANES {
+        return None;
+    }
+    let mut x = [[0.0f32; LANES]; N];
+    for (l, o) in obs.chunks_exact(N).enumerate() {
+        for (xk, v) in x.iter_mut().zip(o) {
+            *xk.get_mut(l)? = *v;
+        }
+    }
+    Some(x)
+}
+
+/// Lanes of actions as one action per lane.
+#[inline(always)]
+fn from_lanes(y: &Lanes<ACTION_DIM>) -> Option<[[f32; ACTION_DIM]; LANES]> {
+    let mut means = [[0.0f32; ACTION_DIM]; LANES];
+    for (k, yk) in y.iter().enumerate() {
+        for (m, v) in means.iter_mut().zip(yk) {
+            *m.get_mut(k)? = *v;
+        }
+    }
+    Some(means)
+}
+
+/// The LSTM states of `states` (each viewed by `view`; `None`, nothing touched, when one
+/// is another policy's) and their values as lanes. (Written without closures: a closure is
+/// its own function, which the caller's `#[target_feature]` would not reach.)
+#[inline(always)]
+#[allow(clippy::type_complexity)]
+fn gather_lanes<const DEEP: usize>(
+    states: [&mut PolicyState; LANES],
+    view: fn(&mut PolicyState) -> Option<&mut LstmStackState<128, DEEP>>,
+) -> Option<(
+    [Option<&mut LstmStackState<128, DEEP>>; LANES],
+    LstmStackLanes<128, DEEP>,
+)> {
+    let mut views = [const { None }; LANES];
+    for (v, s) in views.iter_mut().zip(states) {
+        *v = Some(view(s)?);
+    }
+    let mut lanes = LstmStackLanes::default();
+    for (l, v) in views.iter().enumerate() {
+        lanes.set_lane(l, v.as_deref()?);
+    }
+    Some((views, lanes))
+}
+
+/// Writes the stepped `lanes` back into `views` and returns the actions `y`, one per lane.
+#[inline(always)]
+fn scatter_lanes<const DEEP: usize>(
+    lanes: &LstmStackLanes<128, DEEP>,
+    views: &mut [Option<&mut LstmStackState<128, DEEP>>; LANES],
+    y: &Lanes<ACTION_DIM>,
+) -> Option<[[f32; ACTION_DIM]; LANES]> {
+    for (l, v) in views.iter_mut().enumerate() {
+        lanes.get_lane(l, v.as_deref_mut()?);
+    }
+    from_lanes(y)
+}
+
+impl PolicyState {
+    fn lstm1(&mut self) -> Option<&mut Lstm1State> {
+        match self {
+            Self::Lstm1(s) => Some(s),
+            _ => None,
+        }
+    }
+
+    fn lstm2(&mut self) -> Option<&mut Lstm2State> {
+        match self {
+            Self::Lstm2(s) => Some(s),
             _ => None,
         }
     }

@@ -209,3 +209,66 @@ fn a_folded_controller_flies_the_mirrored_half_as_the_image_of_the_other() {
     assert!(matches!(e, ControllerError::NoMirror(_)), "{e}");
     assert!(e.to_string().contains("folded"), "{e}");
 }
+
+/// `Controller::step_lanes`: 16 clones of one controller stepped side by side give, lane by
+/// lane, what `step` gives each (outputs and everything the next step reads), over a flight
+/// with a refused input in one lane and resets in others, for a folded MLP and row G.
+#[test]
+fn step_lanes_is_step_for_every_lane() {
+    use firmware_core::nn::LANES;
+    for (row, folded) in [
+        (TableRow::A, true),
+        (TableRow::G, false),
+        (TableRow::E, false),
+    ] {
+        let mut header = synthetic::header(row, 5);
+        header.observation = header.observation.with_fold(folded);
+        let payload = synthetic::weights(&header.architecture, 5);
+        let bytes =
+            AlignedBytes::new(&firmware_core::blob::encode(&header, &payload).expect("encode"));
+        let template =
+            Controller::from_bytes(bytes.as_bytes(), Track::figure_eight()).expect("controller");
+        let policy = *template.policy();
+        let mut one: Vec<Controller<'_>> = (0..LANES).map(|_| template.clone()).collect();
+        let mut side: Vec<Controller<'_>> = one.clone();
+        for t in 0..40 {
+            let own: Vec<VehicleState> = (0..LANES)
+                .map(|l| {
+                    let mut s = hovering(-1.5 + 0.05 * l as f32 + 0.03 * t as f32);
+                    s.velocity_mps = Vec3::new(1.0 + 0.1 * l as f32, 0.2 * t as f32, -0.1);
+                    if (l, t) == (3, 17) {
+                        s.position_m.z = f32::NAN;
+                    }
+                    s
+                })
+                .collect();
+            let opp: Vec<VehicleState> = (0..LANES).map(|l| hovering(0.1 * l as f32)).collect();
+            for (l, (a, b)) in one.iter_mut().zip(side.iter_mut()).enumerate() {
+                if (t + l) % 11 == 0 {
+                    a.reset(l % 7);
+                    b.reset(l % 7);
+                }
+            }
+            let want: Vec<_> = one
+                .iter_mut()
+                .zip(&own)
+                .zip(&opp)
+                .map(|((c, o), p)| c.step(o, Some(p)))
+                .collect();
+            let mut refs = side.iter_mut();
+            let controllers: [&mut Controller<'_>; LANES] =
+                core::array::from_fn(|_| refs.next().expect("16"));
+            let got = Controller::step_lanes(
+                &policy,
+                controllers,
+                core::array::from_fn(|l| &own[l]),
+                core::array::from_fn(|l| Some(&opp[l])),
+            );
+            assert_eq!(got.as_slice(), want.as_slice(), "row {row:?}, step {t}");
+            for (a, b) in one.iter().zip(&side) {
+                assert_eq!(a.policy_state(), b.policy_state());
+                assert_eq!(a.progress(), b.progress());
+            }
+        }
+    }
+}

@@ -1,5 +1,5 @@
-//! `Policy::act_lanes`, the host's batched inference: every lane is bit for bit `act` of its
-//! own observation (the training rollout flies it, the controller flies `act`, so a single
+//! `Policy::act_lanes` and `Policy::step_lanes`, the host's batched inference: every lane is
+//! bit for bit `act` of its own observation (and, for a recurrent row, its own state) (the training rollout flies it, the controller flies `act`, so a single
 //! differing bit would make training and deployment disagree). A NaN may come out as
 //! another NaN (x86 keeps the first operand's NaN, and the vectorised code may order an
 //! operation's operands the other way): NaNs compare as one value here.
@@ -76,6 +76,107 @@ fn every_lane_is_act_bit_for_bit_on_the_feed_forward_rows() {
     }
 }
 
+/// The policy of a synthetic `row` blob in `aligned`.
+fn policy_of(aligned: &AlignedBytes) -> Policy<'_> {
+    Blob::parse(aligned.as_bytes())
+        .and_then(|b| b.policy())
+        .expect("policy")
+}
+
+/// `steps` steps of `LANES` envs, each with its own observations and recurrent state, the
+/// state of the envs in `resets[t]` zeroed before step `t` (an episode end): every lane of
+/// `step_lanes` is `act` from that env's own state, bit for bit, at every step, and the
+/// states agree too.
+fn check_recurrent(row: TableRow, int8: bool, seed: u64, obs: &[f32], resets: &[u16]) {
+    let bytes = if int8 {
+        synthetic::blob_i8(row, seed)
+    } else {
+        synthetic::blob(row, seed)
+    }
+    .expect("encode");
+    let aligned = AlignedBytes::new(&bytes);
+    let policy = policy_of(&aligned);
+    let dim = policy.obs_dim();
+    let mut one = [policy.initial_state(); LANES];
+    let mut side = [policy.initial_state(); LANES];
+    for (t, (o, reset)) in obs.chunks_exact(dim * LANES).zip(resets).enumerate() {
+        for l in (0..LANES).filter(|l| reset & (1 << l) != 0) {
+            one[l].clear();
+            side[l].clear();
+        }
+        let want: Vec<[u32; ACTION_DIM]> = o
+            .chunks_exact(dim)
+            .zip(&mut one)
+            .map(|(o, s)| {
+                let o = Observation::from_values(o).expect("size");
+                policy.act(&o, s).expect("act").map(bits)
+            })
+            .collect();
+        let got: Vec<[u32; ACTION_DIM]> = policy
+            .step_lanes(o, side.each_mut())
+            .expect("its own states")
+            .iter()
+            .map(|m| m.map(bits))
+            .collect();
+        assert_eq!(got, want, "row {row:?}, int8 {int8}, seed {seed}, step {t}");
+        assert_eq!(
+            format!("{side:?}"),
+            format!("{one:?}"),
+            "states, row {row:?}, int8 {int8}, seed {seed}, step {t}"
+        );
+    }
+}
+
+#[test]
+fn every_lane_is_act_bit_for_bit_on_the_recurrent_rows_across_resets() {
+    for row in [TableRow::E, TableRow::F, TableRow::G] {
+        for int8 in [false, true] {
+            let steps = 12;
+            let obs: Vec<f32> = synthetic::observations(30, LANES * steps, 7)
+                .concat()
+                .iter()
+                .map(|v| v * 3.0)
+                .collect();
+            // Lane l resets every (l % 5 + 2) steps: some lanes mid-sequence, some often.
+            let resets: Vec<u16> = (0..steps)
+                .map(|t| {
+                    (0..LANES)
+                        .filter(|l| t % (l % 5 + 2) == 0)
+                        .map(|l| 1u16 << l)
+                        .sum()
+                })
+                .collect();
+            check_recurrent(row, int8, 3, &obs, &resets);
+        }
+    }
+}
+
+#[test]
+fn step_lanes_refuses_another_policys_states_and_touches_none() {
+    let bytes = synthetic::blob(TableRow::G, 1).expect("encode");
+    let aligned = AlignedBytes::new(&bytes);
+    let policy = policy_of(&aligned);
+    let obs = vec![0.5; 30 * LANES];
+    let mut states = [policy.initial_state(); LANES];
+    // One lane holds a one-layer state (row E's): nothing runs, nothing changes.
+    let e_bytes = synthetic::blob(TableRow::E, 1).expect("encode");
+    let e_aligned = AlignedBytes::new(&e_bytes);
+    states[9] = policy_of(&e_aligned).initial_state();
+    let before = states;
+    assert!(policy.step_lanes(&obs, states.each_mut()).is_none());
+    assert_eq!(states, before);
+    assert!(policy.step_lanes(&obs[1..], states.each_mut()).is_none());
+    // A feed-forward policy ignores its (stateless) states.
+    let a_bytes = synthetic::blob(TableRow::A, 1).expect("encode");
+    let a_aligned = AlignedBytes::new(&a_bytes);
+    let a = policy_of(&a_aligned);
+    let mut stateless = [a.initial_state(); LANES];
+    assert_eq!(
+        a.step_lanes(&vec![0.5; 17 * LANES], stateless.each_mut()),
+        a.act_lanes(&vec![0.5; 17 * LANES])
+    );
+}
+
 #[test]
 fn recurrent_rows_and_wrong_lengths_are_refused() {
     for row in [TableRow::E, TableRow::G] {
@@ -116,5 +217,27 @@ proptest! {
         ),
     ) {
         check(TableRow::A, false, seed, &values);
+    }
+
+    /// Rows E, F and G, f32 and int8, over any observations and any pattern of episode
+    /// resets: every lane of `step_lanes` is `act` from its own state.
+    #[test]
+    fn recurrent_lanes_are_act_for_any_inputs_and_resets(
+        row in prop_oneof![Just(TableRow::E), Just(TableRow::F), Just(TableRow::G)],
+        int8 in any::<bool>(),
+        seed in 0u64..1000,
+        values in proptest::collection::vec(
+            prop_oneof![
+                8 => -4.0f32..4.0,
+                1 => Just(0.0f32),
+                1 => Just(-0.0f32),
+                1 => Just(f32::NAN),
+                1 => Just(-1e30f32),
+            ],
+            30 * LANES * 4,
+        ),
+        resets in proptest::collection::vec(any::<u16>(), 4),
+    ) {
+        check_recurrent(row, int8, seed, &values, &resets);
     }
 }

@@ -9,6 +9,9 @@
 //! - `rollout_inference/512_envs_{one_by_one,lanes}`: the deployed network's means for one
 //!   step of 512 envs on one thread, `Policy::act` env by env and `act_lanes` 16 envs side by
 //!   side (the rollout's path since the lanes; the same bits), in the same run;
+//! - `rollout_inference/G_512_envs_{one_by_one,lanes}`: the same for row G (2-layer LSTM
+//!   128 + MLP 256-128-128-64, each env its own recurrent state) on race observations:
+//!   `Policy::act` env by env against `step_lanes` 16 envs side by side;
 //! - `train_iteration/stage1`: one PPO iteration of `configs/stage1.toml` (the shipped
 //!   config) end to end (rollout of 512 envs × 100 steps with the deployed network, folded,
 //!   then 5 epochs × 4 minibatches of 12,800), checkpoint load and save included.
@@ -25,11 +28,12 @@ use host_trainer::model::{Actor, Critic};
 use host_trainer::nets::{PolicyNet, ValueNet};
 use host_trainer::ppo::Learner;
 use host_trainer::rng::init_rng;
-use host_trainer::rollout::{Rollout, act_lanes};
+use host_trainer::rollout::Rollout;
 use host_trainer::train::{RunOptions, run};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use sitl::env::{EnvConfig, OBS_DIM, VecEnv};
+use sitl::lanes::{act_lanes, step_lanes};
 
 const STAGE1: &str = include_str!("../configs/stage1.toml");
 
@@ -124,6 +128,42 @@ fn inference(c: &mut Criterion) {
                 .zip(obs.chunks_exact(OBS_DIM * LANES))
             {
                 let lanes = act_lanes(&policy, o).unwrap();
+                m.copy_from_slice(lanes.as_flattened());
+            }
+        })
+    });
+    // Row G (synthetic weights: the cost does not depend on their values) on the race.
+    let bytes = firmware_core::blob::AlignedBytes::new(
+        &firmware_core::synthetic::blob(TableRow::G, 1).unwrap(),
+    );
+    let g_policy = firmware_core::Blob::parse(bytes.as_bytes())
+        .and_then(|b| b.policy())
+        .unwrap();
+    let opponent = concat!(env!("CARGO_MANIFEST_DIR"), "/../policies/stage1.blob");
+    let race = VecEnv::new(EnvConfig::stage2(envs, opponent)).unwrap();
+    let race_obs = race.observations().to_vec();
+    let mut states = vec![g_policy.initial_state(); envs];
+    g.bench_function("G_512_envs_one_by_one", |b| {
+        b.iter(|| {
+            for ((m, o), s) in means
+                .chunks_exact_mut(ACTION_DIM)
+                .zip(race_obs.chunks_exact(30))
+                .zip(&mut states)
+            {
+                let o = Observation::from_values(o).unwrap();
+                m.copy_from_slice(&g_policy.act(&o, s).unwrap());
+            }
+        })
+    });
+    g.bench_function("G_512_envs_lanes", |b| {
+        b.iter(|| {
+            for ((m, o), s) in means
+                .chunks_exact_mut(ACTION_DIM * LANES)
+                .zip(race_obs.chunks_exact(30 * LANES))
+                .zip(states.chunks_exact_mut(LANES))
+            {
+                let s: &mut [_; LANES] = s.try_into().unwrap();
+                let lanes = step_lanes(&g_policy, o, s.each_mut()).unwrap();
                 m.copy_from_slice(lanes.as_flattened());
             }
         })

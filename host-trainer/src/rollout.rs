@@ -16,6 +16,7 @@ use firmware_core::policy::{Policy, PolicyState};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use sitl::env::VecEnv;
+use sitl::lanes::step_lanes;
 use std::collections::VecDeque;
 
 /// One iteration's transitions, time-major (`[step][env]`).
@@ -123,27 +124,29 @@ pub fn collect_rollout(
             .zip(noise.par_chunks(ACTION_DIM * ENVS_PER_TASK))
             .zip(rollout.memory.par_chunks_mut(ENVS_PER_TASK))
             .for_each(|(((a, o), z), memory)| {
-                // A feed-forward policy runs LANES envs side by side (the same bits as one
-                // by one), the rest of the chunk and a recurrent policy one by one.
+                // LANES envs side by side (the same bits as one by one, each env's
+                // recurrent state its own), the rest of the chunk one by one.
                 let mut done = 0;
-                if !policy.is_recurrent() {
-                    for ((a, o), z) in a
-                        .chunks_exact_mut(ACTION_DIM * LANES)
-                        .zip(o.chunks_exact(obs_dim * LANES))
-                        .zip(z.chunks_exact(ACTION_DIM * LANES))
+                for (((a, o), z), memory) in a
+                    .chunks_exact_mut(ACTION_DIM * LANES)
+                    .zip(o.chunks_exact(obs_dim * LANES))
+                    .zip(z.chunks_exact(ACTION_DIM * LANES))
+                    .zip(memory.chunks_exact_mut(LANES))
+                {
+                    let Ok(memory) = <&mut [PolicyState; LANES]>::try_from(memory) else {
+                        break;
+                    };
+                    let Some(means) = step_lanes(policy, o, memory.each_mut()) else {
+                        break;
+                    };
+                    for ((a, mean), z) in a
+                        .chunks_exact_mut(ACTION_DIM)
+                        .zip(means)
+                        .zip(z.chunks_exact(ACTION_DIM))
                     {
-                        let Some(means) = act_lanes(policy, o) else {
-                            break;
-                        };
-                        for ((a, mean), z) in a
-                            .chunks_exact_mut(ACTION_DIM)
-                            .zip(means)
-                            .zip(z.chunks_exact(ACTION_DIM))
-                        {
-                            explore(a, &mean, std, z);
-                        }
-                        done += LANES;
+                        explore(a, &mean, std, z);
                     }
+                    done += LANES;
                 }
                 for (((a, o), z), memory) in a
                     .chunks_exact_mut(ACTION_DIM)
@@ -196,39 +199,6 @@ fn explore(action: &mut [f32], mean: &[f32; ACTION_DIM], std: &[f32], noise: &[f
 
 /// Envs per parallel task of the rollout's inference (a multiple of [`LANES`]).
 const ENVS_PER_TASK: usize = 64;
-
-/// [`Policy::act_lanes`] compiled for the widest vector unit the CPU has (AVX-512, AVX2,
-/// else the SSE2 baseline): the same operations in every lane, in the same order, so the
-/// same numbers whichever runs (`act_lanes` equals `act` bit for bit, NaNs aside). One by
-/// one, the rollout's inference was three quarters of its time.
-pub fn act_lanes(policy: &Policy<'_>, obs: &[f32]) -> Option<[[f32; ACTION_DIM]; LANES]> {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx512f") {
-            // SAFETY: the CPU has AVX-512F (checked just above).
-            return unsafe { act_lanes_avx512(policy, obs) };
-        }
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU has AVX2 (checked just above).
-            return unsafe { act_lanes_avx2(policy, obs) };
-        }
-    }
-    policy.act_lanes(obs)
-}
-
-/// [`Policy::act_lanes`] compiled for AVX-512.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-fn act_lanes_avx512(policy: &Policy<'_>, obs: &[f32]) -> Option<[[f32; ACTION_DIM]; LANES]> {
-    policy.act_lanes(obs)
-}
-
-/// [`Policy::act_lanes`] compiled for AVX2.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn act_lanes_avx2(policy: &Policy<'_>, obs: &[f32]) -> Option<[[f32; ACTION_DIM]; LANES]> {
-    policy.act_lanes(obs)
-}
 
 /// Appends a firmware-core recurrent state in the flat layout of
 /// [`crate::recurrent::LstmState`] (per layer `h` then `c`); nothing for a feed-forward

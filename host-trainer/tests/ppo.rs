@@ -323,6 +323,72 @@ fn the_std_ceiling_holds_against_the_entropy_bonus() {
     }
 }
 
+/// The rollout runs a recurrent policy 16 envs side by side too (`Policy::step_lanes`, each
+/// env's LSTM state its own, zeroed at its episode ends), racing `policies/stage1.blob`:
+/// every recorded action is the deployed network's `act`, replayed env by env from each
+/// env's own state, plus σ times the serially drawn noise, across two windows (the state
+/// carries over) and the episode ends inside them. 83 envs: four lane groups in the first
+/// task, then one lane group and three envs one by one.
+#[test]
+fn recurrent_rollout_actions_are_act_from_each_envs_own_state() {
+    use firmware_core::blob::AlignedBytes;
+    use firmware_core::observation::Observation;
+    use host_trainer::rng::normal;
+    use host_trainer::rollout::{Rollout, collect_rollout};
+    use sitl::env::{EnvConfig, VecEnv};
+    let bytes = AlignedBytes::new(&firmware_core::synthetic::blob(TableRow::G, 3).unwrap());
+    let policy = firmware_core::Blob::parse(bytes.as_bytes())
+        .and_then(|b| b.policy())
+        .unwrap();
+    let std = [0.3f32; 4];
+    let (envs, steps) = (83, 40);
+    let opponent = concat!(env!("CARGO_MANIFEST_DIR"), "/../policies/stage1.blob");
+    let mut env = VecEnv::new(EnvConfig::stage2(envs, opponent)).unwrap();
+    let mut rollout = Rollout::new(envs, 30);
+    let mut noise = ChaCha8Rng::seed_from_u64(4);
+    let mut replay = noise.clone();
+    let mut states = vec![policy.initial_state(); envs];
+    let mut ends = 0;
+    for window in 0..2 {
+        collect_rollout(
+            &mut env,
+            &policy,
+            &std,
+            steps,
+            &mut noise,
+            &mut rollout,
+            |_, _| {},
+        )
+        .unwrap();
+        for (i, ((o, a), done)) in rollout
+            .obs
+            .chunks_exact(30)
+            .zip(rollout.actions.chunks_exact(4))
+            .zip(&rollout.dones)
+            .enumerate()
+        {
+            let z: [f32; 4] = core::array::from_fn(|_| normal(&mut replay));
+            let state = &mut states[i % envs];
+            let mean = policy
+                .act(&Observation::from_values(o).unwrap(), state)
+                .unwrap();
+            let want: [f32; 4] = core::array::from_fn(|k| mean[k] + std[k] * z[k]);
+            assert_eq!(
+                a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                want.map(f32::to_bits),
+                "window {window}, env {}, step {}",
+                i % envs,
+                i / envs
+            );
+            if *done {
+                state.clear();
+                ends += 1;
+            }
+        }
+    }
+    assert!(ends > 0, "no episode ended: the resets went untested");
+}
+
 /// The rollout runs a feed-forward policy 16 envs side by side (`Policy::act_lanes`, built
 /// for the CPU's vector unit) and the rest of each 64-env task one by one: every recorded
 /// action is still exactly the deployed network's `act` on the recorded observation plus

@@ -1,5 +1,7 @@
 //! The training environment's step rate: 4,096 stage-1 envs (dynamics, gate test, crash
-//! rules, rewards with their terms, respawns, observations), rayon over the cores.
+//! rules, rewards with their terms, respawns, observations), rayon over the cores; and
+//! 4,096 stage-2 envs, each with its opponent (`policies/stage1.blob`, flown by
+//! firmware-core's controller, 16 envs side by side) stepped in the env.
 //!
 //! `cargo bench -p sitl --bench env_step`
 
@@ -16,6 +18,9 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("train_env");
     g.throughput(Throughput::Elements(n as u64));
     g.bench_function("step_4096", |b| b.iter(|| env.step(&actions)));
+    let opponent = concat!(env!("CARGO_MANIFEST_DIR"), "/../policies/stage1.blob");
+    let mut race = VecEnv::new(EnvConfig::stage2(n, opponent)).expect("the shipped opponent");
+    g.bench_function("race_4096", |b| b.iter(|| race.step(&actions)));
     g.finish();
 }
 

@@ -1,5 +1,5 @@
 """Env-steps per second through Python: 4,096 envs stepped with random actions, a time trial
-and a race (against policies/stage1_guarded.blob), through the Gymnasium `step` (with its
+and a race (against policies/stage1.blob, the shipped opponent), through the Gymnasium `step` (with its
 infos) and through the bare Rust step (no infos). A benchmark, not a test: it prints rates.
 
     python3 sitl/python/bench.py [--num-envs 4096] [--seconds 5]
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-OPPONENT = Path(__file__).resolve().parents[2] / "policies" / "stage1_guarded.blob"
+OPPONENT = Path(__file__).resolve().parents[2] / "policies" / "stage1.blob"
 
 
 def cpu_model() -> str:

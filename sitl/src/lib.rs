@@ -29,6 +29,7 @@ pub mod env;
 pub mod eval;
 pub mod files;
 pub mod frames;
+pub mod lanes;
 pub mod mirror;
 pub mod pilot;
 pub mod plot;

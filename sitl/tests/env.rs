@@ -867,3 +867,47 @@ fn a_policy_that_observes_otherwise_is_refused() {
             .contains("layout")
     );
 }
+
+/// The race env steps its opponents 16 side by side (`sitl::lanes`): the trajectories are
+/// those of `Controller::step` one by one. Slot k of a 48-env race (every opponent in a
+/// group of 16) flies exactly as the same slot of a (k+1)-env race, where it is in the
+/// remainder stepped one by one: observations, rewards and episode ends, over 400 steps
+/// with the opponent `policies/stage1.blob` and crashes and respawns on the way.
+#[test]
+fn opponents_stepped_side_by_side_fly_as_one_by_one() {
+    let stage1 = concat!(env!("CARGO_MANIFEST_DIR"), "/../policies/stage1.blob");
+    let config = |n: usize| EnvConfig {
+        random_initial_episode_length: true,
+        seed: 5,
+        ..EnvConfig::stage2(n, stage1)
+    };
+    let action = |slot: usize, t: usize| -> [f32; 4] {
+        // A hover-ish command with a slot- and step-dependent wobble: some envs crash.
+        core::array::from_fn(|k| (0.3 * ((slot * 7 + t * 3 + k * 5) as f32 * 0.37).sin()) - 0.05)
+    };
+    let dim = VecEnv::new(config(1)).unwrap().obs_dim();
+    for k in [0usize, 16, 33] {
+        let mut alone = VecEnv::new(config(k + 1)).unwrap();
+        let mut wide_k = VecEnv::new(config(48)).unwrap();
+        let mut ends = 0;
+        for t in 0..400 {
+            let a_wide: Vec<f32> = (0..48).flat_map(|s| action(s, t)).collect();
+            let a_alone: Vec<f32> = (0..=k).flat_map(|s| action(s, t)).collect();
+            wide_k.step(&a_wide).unwrap();
+            alone.step(&a_alone).unwrap();
+            let row = k * dim..(k + 1) * dim;
+            assert_eq!(
+                wide_k.observations()[row.clone()],
+                alone.observations()[row],
+                "slot {k}, step {t}"
+            );
+            assert_eq!(wide_k.rewards()[k].to_bits(), alone.rewards()[k].to_bits());
+            assert_eq!(wide_k.dones()[k], alone.dones()[k]);
+            ends += usize::from(alone.dones()[k]);
+        }
+        assert!(
+            ends > 0,
+            "slot {k}: no episode ended, the test saw no respawn"
+        );
+    }
+}

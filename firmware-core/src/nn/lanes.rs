@@ -45,7 +45,7 @@ fn axpy_lanes(acc: &mut [f32; LANES], w: f32, x: &[f32; LANES]) {
 
 /// `a[l] + b[l]` in every lane.
 #[inline(always)]
-fn add_lanes(a: &[f32; LANES], b: &[f32; LANES]) -> [f32; LANES] {
+pub(super) fn add_lanes(a: &[f32; LANES], b: &[f32; LANES]) -> [f32; LANES] {
     let mut out = *a;
     for (o, bl) in out.iter_mut().zip(b) {
         *o += bl;
@@ -74,7 +74,7 @@ pub(super) fn tanh_lanes(v: &mut [[f32; LANES]]) {
 /// (k stays within [−126, 126] here). Lanes libm treats as special (|x| ≥ 87.34, where it
 /// overflows or underflows, and NaN) are recomputed by `libm::expf` itself.
 #[inline(always)]
-fn expf_lanes(x: &[f32; LANES]) -> [f32; LANES] {
+pub(super) fn expf_lanes(x: &[f32; LANES]) -> [f32; LANES] {
     let ln2_hi = f32::from_bits(0x3f31_7200);
     let ln2_lo = f32::from_bits(0x35bf_be8e);
     let inv_ln2 = f32::from_bits(0x3fb8_aa3b);

@@ -26,7 +26,9 @@ mod lstm;
 mod mlp;
 
 pub use kernels::{Matrix, dot_i8_i16, sigmoid, tanh};
-pub use lstm::{LstmCell, LstmLayerState, LstmPolicy, LstmStack, LstmStackState};
+pub use lstm::{
+    LstmCell, LstmLayerLanes, LstmLayerState, LstmPolicy, LstmStack, LstmStackLanes, LstmStackState,
+};
 pub use mlp::{Head, Hidden, Layers, Linear, Mlp, Mlp2, Mlp3, Mlp4, MlpPolicy};
 
 use crate::format::{BlobError, WeightDtype};

@@ -24,10 +24,11 @@ use firmware_core::Controller;
 use firmware_core::baseline::BaselineController;
 
 use firmware_core::mirror::{TrackMirror, observe_folded, unfold_action};
-use firmware_core::nn::ACTION_DIM;
+use firmware_core::nn::{ACTION_DIM, LANES};
 use firmware_core::observation::{Observation, ObservationError, ObservationSpec};
+use firmware_core::policy::Policy;
 use firmware_core::track::CrashRules;
-use firmware_core::vehicle::ActionMap;
+use firmware_core::vehicle::{ActionMap, MotorCommand};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
@@ -338,6 +339,8 @@ impl VecEnv {
         };
         let reward = &reward;
         let progress = &self.progress;
+        let opponent_policy = self.race.as_ref().map(|r| *r.opponent.policy());
+        let opponent_policy = opponent_policy.as_ref();
         self.slots
             .par_chunks_mut(CHUNK)
             .zip(self.observations.par_chunks_mut(CHUNK * obs_dim))
@@ -349,6 +352,7 @@ impl VecEnv {
             .zip(actions.par_chunks(CHUNK * ACTION_DIM))
             .for_each(
                 |(((((((slots, obs), last), rew), done), timeout), record), act)| {
+                    let opponent_commands = opponent_commands(opponent_policy, slots);
                     for (i, slot) in slots.iter_mut().enumerate() {
                         let raw: [f32; ACTION_DIM] = core::array::from_fn(|k| {
                             act.get(i * ACTION_DIM + k).copied().unwrap_or(0.0)
@@ -366,7 +370,8 @@ impl VecEnv {
                         // A folded observation's action is the image's: renumber it back.
                         let folded = fold.is_some_and(|m| m.folds(slot.drones[0].progress.target));
                         let a = unfold_action(fold, folded, &a);
-                        let rec = step_slot(world, progress, map, reward, max_steps, slot, &a);
+                        let opp = opponent_commands.get(i).copied();
+                        let rec = step_slot(world, progress, map, reward, max_steps, slot, &a, opp);
                         let ended = rec.crashed || rec.timed_out;
                         if rec.gate_passed && !ended && rule.replay_fraction > 0.0 {
                             slot.passes.record(slot.drones[0], slot.previous_action);
@@ -503,7 +508,51 @@ impl VecEnv {
     }
 }
 
-/// Steps one env; returns what the step was made of.
+/// The commands of the opponents of `slots` (stage 2; empty in a time trial), from the
+/// states before the step (as the referee's lockstep does): their controllers stepped
+/// [`LANES`] at a time through `policy`, the one all of them fly (clones of the race's
+/// controller), the remainder one by one; bit for bit `Controller::step` either way.
+fn opponent_commands(policy: Option<&Policy<'static>>, slots: &mut [Slot]) -> Vec<MotorCommand> {
+    let Some(policy) = policy else {
+        return Vec::new();
+    };
+    let mut commands = Vec::with_capacity(slots.len());
+    let mut groups = slots.chunks_exact_mut(LANES);
+    for group in &mut groups {
+        let mut controllers = Vec::with_capacity(LANES);
+        let mut own = Vec::with_capacity(LANES);
+        let mut ego = Vec::with_capacity(LANES);
+        for slot in group.iter_mut() {
+            let [e, o] = &slot.drones;
+            own.push(&o.body.state);
+            ego.push(Some(&e.body.state));
+            if let Some(c) = slot.opponent.as_mut() {
+                controllers.push(c);
+            }
+        }
+        let (Ok(controllers), Ok(own), Ok(ego)) = (
+            <[_; LANES]>::try_from(controllers),
+            <[_; LANES]>::try_from(own),
+            <[_; LANES]>::try_from(ego),
+        ) else {
+            // A slot without an opponent in a race: none is built that way.
+            return Vec::new();
+        };
+        let out = crate::lanes::controller_step_lanes(policy, controllers, own, ego);
+        commands.extend(out.iter().map(|o| o.command));
+    }
+    for slot in groups.into_remainder() {
+        let [e, o] = &slot.drones;
+        if let Some(c) = slot.opponent.as_mut() {
+            commands.push(c.step(&o.body.state, Some(&e.body.state)).command);
+        }
+    }
+    commands
+}
+
+/// Steps one env, the opponent (stage 2) flying `opponent_command`; returns what the step
+/// was made of.
+#[allow(clippy::too_many_arguments)]
 fn step_slot(
     world: &World,
     progress: &TrackProgress,
@@ -512,19 +561,17 @@ fn step_slot(
     max_steps: u32,
     slot: &mut Slot,
     action: &[f32; ACTION_DIM],
+    opponent_command: Option<MotorCommand>,
 ) -> StepRecord {
     let d = &slot.drones[0];
     let gate = world.track.gate(d.progress.target).center_m;
     let before = d.position_m();
-    let (result, opponent_crashed) = match &mut slot.opponent {
-        Some(c) => {
-            let [ego, opp] = &slot.drones;
-            // Both commands from the states before the step, as the referee's lockstep does.
-            let opp_command = c.step(&opp.body.state, Some(&ego.body.state)).command;
+    let (result, opponent_crashed) = match (slot.opponent.is_some(), opponent_command) {
+        (true, Some(opp_command)) => {
             let [e, o] = world.step(&mut slot.drones, &[map.command(action), opp_command]);
             (e, o.crash.is_some())
         }
-        None => {
+        _ => {
             let [ego, _] = &mut slot.drones;
             let [e] = world.step(core::array::from_mut(ego), &[map.command(action)]);
             (e, false)
