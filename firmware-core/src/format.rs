@@ -83,8 +83,17 @@ pub enum BlobError {
     UnsupportedArchitecture,
     /// The action map is not finite and positive.
     InvalidActionMap,
-    /// The control period is zero.
+    /// The control period is outside [`crate::blob::CONTROL_PERIOD_RANGE_NS`] (0.1 ms to 1 s).
     InvalidControlPeriod,
+    /// An observation scale or the clip is outside
+    /// [`crate::blob::OBSERVATION_SCALE_RANGE`] (1e-3 to 1e4): finite and positive, but no
+    /// pipeline divides by it on purpose.
+    ImplausibleObservationScale,
+    /// The blob is larger than [`crate::blob::MAX_BLOB_BYTES`].
+    TooLarge {
+        /// Bytes offered.
+        bytes: usize,
+    },
     /// The int8 payload does not have exactly the architecture's size.
     PayloadLengthMismatch {
         /// Bytes the architecture needs in int8.
@@ -148,7 +157,17 @@ impl core::fmt::Display for BlobError {
                 f.write_str("blob architecture is not a supported Table 1 policy")
             }
             Self::InvalidActionMap => f.write_str("blob action map is not finite and positive"),
-            Self::InvalidControlPeriod => f.write_str("blob control period is zero"),
+            Self::InvalidControlPeriod => {
+                f.write_str("blob control period is outside 0.1 ms to 1 s")
+            }
+            Self::ImplausibleObservationScale => f.write_str(
+                "blob observation scale or clip is outside 1e-3 to 1e4 (a corrupt or hand-edited header)",
+            ),
+            Self::TooLarge { bytes } => write!(
+                f,
+                "{bytes} bytes is larger than any blob ({} MiB at most)",
+                crate::blob::MAX_BLOB_BYTES >> 20
+            ),
             Self::PayloadSizeMismatch {
                 expected_floats,
                 actual_floats,

@@ -203,9 +203,56 @@ fn action_map_and_control_period_are_checked() {
         parse(&encode_with(|h| h.action_map.hover_rpm = -1.0)),
         Err(BlobError::InvalidActionMap)
     );
+    for period_ns in [0, 99_999, 1_000_000_001, u32::MAX] {
+        assert_eq!(
+            parse(&encode_with(|h| h.control_period_ns = period_ns)),
+            Err(BlobError::InvalidControlPeriod),
+            "{period_ns} ns"
+        );
+    }
+    for period_ns in [100_000, 10_000_000, 20_000_000, 1_000_000_000] {
+        assert_eq!(
+            parse(&encode_with(|h| h.control_period_ns = period_ns)),
+            Ok(())
+        );
+    }
+}
+
+/// Finite, positive, but implausible scales (a gate scale of 1e-40 divides every position
+/// into saturation) are refused by the parser, so every reader refuses them.
+#[test]
+fn implausible_observation_scales_are_refused() {
+    type Edit = fn(&mut BlobHeader, f32);
+    let edits: [Edit; 4] = [
+        |h, v| h.observation.gate_position_scale_m = v,
+        |h, v| h.observation.velocity_scale_mps = v,
+        |h, v| h.observation.opponent_rate_scale_radps = v,
+        |h, v| h.observation.clip = v,
+    ];
+    for edit in edits {
+        for v in [1e-40, 1e-4, 2e4, 1e30] {
+            assert_eq!(
+                parse(&encode_with(|h| edit(h, v))),
+                Err(BlobError::ImplausibleObservationScale),
+                "{v}"
+            );
+        }
+        for v in [1e-3, 0.25, 12.0, 1e4] {
+            assert_eq!(parse(&encode_with(|h| edit(h, v))), Ok(()), "{v}");
+        }
+    }
+}
+
+/// Anything above the size limit is refused before it is looked at.
+#[test]
+fn an_oversized_blob_is_refused() {
+    let mut bytes = row_a();
+    bytes.resize(firmware_core::blob::MAX_BLOB_BYTES + 4, 0);
     assert_eq!(
-        parse(&encode_with(|h| h.control_period_ns = 0)),
-        Err(BlobError::InvalidControlPeriod)
+        parse(&bytes),
+        Err(BlobError::TooLarge {
+            bytes: firmware_core::blob::MAX_BLOB_BYTES + 4
+        })
     );
 }
 

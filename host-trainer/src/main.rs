@@ -276,7 +276,9 @@ fn train(config: &Path, options: RunOptions) -> Result<(), String> {
     match &s.blob {
         Some(p) => println!("policy: {}", p.display()),
         None => println!(
-            "stopped before the budget; continue with --resume (checkpoint in {})",
+            "stopped after iteration {} of {}: wrote a checkpoint ({}) and no blob; continue with --resume",
+            s.iterations,
+            cfg.run.iterations,
             options.out.join("checkpoints").display()
         ),
     }

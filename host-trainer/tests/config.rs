@@ -133,6 +133,30 @@ fn typos_and_bad_values_are_errors() {
     ));
 }
 
+/// `run.name` names files under `--out`: a name that would leave the run directory (or hide
+/// in it) is refused before anything runs; plain names pass.
+#[test]
+fn run_names_stay_inside_the_run_directory() {
+    for name in [
+        "../victim",
+        "a/b",
+        "..",
+        ".hidden",
+        "a\\b",
+        "/etc/x",
+        "sp ace",
+    ] {
+        let t = STAGE1.replace("name = \"stage1\"", &format!("name = \"{name}\""));
+        assert_ne!(t, STAGE1, "the replacement happened");
+        let e = TrainConfig::parse(&t).unwrap_err().to_string();
+        assert!(e.contains("run.name"), "{name}: {e}");
+    }
+    for name in ["stage1", "stage2-G", "smoke_race.v2"] {
+        let t = STAGE1.replace("name = \"stage1\"", &format!("name = \"{name}\""));
+        assert!(TrainConfig::parse(&t).is_ok(), "{name}");
+    }
+}
+
 #[test]
 fn a_selection_is_checked_and_hashed() {
     let select =

@@ -126,7 +126,7 @@ impl PilotSpec {
     /// validated now; `name` labels it in reports.
     pub fn from_blob(name: &str, raw: &[u8]) -> Result<Self, String> {
         let bytes = AlignedBytes::new(raw);
-        Controller::from_bytes(bytes.as_bytes(), Track::figure_eight())
+        world_rate_controller(bytes.as_bytes(), Track::figure_eight())
             .map_err(|e| e.to_string())?;
         Ok(Self::Blob {
             name: name.to_string(),
@@ -163,13 +163,24 @@ impl PilotSpec {
     pub fn build(&self, track: Track<'static>) -> Box<dyn Pilot + '_> {
         match self {
             Self::Baseline(c) => Box::new(BaselineController::new(*c, track)),
-            Self::Blob { bytes, .. } => match Controller::from_bytes(bytes.as_bytes(), track) {
+            Self::Blob { bytes, .. } => match world_rate_controller(bytes.as_bytes(), track) {
                 Ok(c) => Box::new(c),
                 // Validated in `load`; the bytes are immutable since.
                 Err(_) => Box::new(Grounded),
             },
         }
     }
+}
+
+/// The controller of the blob `bytes` on `track`, run at the world's control period
+/// ([`crate::world::CONTROL_PERIOD_NS`]): a recurrent policy trained at another period is
+/// refused (its state would advance at another rate than it learned).
+pub fn world_rate_controller<'w>(
+    bytes: &'w [u8],
+    track: Track<'w>,
+) -> Result<Controller<'w>, firmware_core::controller::ControllerError> {
+    let blob = Blob::parse(bytes)?;
+    Controller::new(&blob, track, crate::world::CONTROL_PERIOD_NS)
 }
 
 /// The baseline's tuning from the `:CRUISE[:OFFSET]` suffix of a `baseline` pilot.

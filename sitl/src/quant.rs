@@ -146,7 +146,7 @@ pub fn compare(
     let world = config.world(race);
     let episode = config.episode(race);
     let track: Track<'static> = world.track;
-    let flying = Controller::from_bytes(f32_bytes.as_bytes(), track)
+    let flying = crate::pilot::world_rate_controller(f32_bytes.as_bytes(), track)
         .map_err(|e| QuantError(e.to_string()))?;
     let int8_policy = Blob::parse(int8_bytes.as_bytes())
         .and_then(|b| b.policy())

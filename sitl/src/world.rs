@@ -152,6 +152,10 @@ pub fn along_track_spawn(line: &Centerline, s: f32) -> SpawnPoint {
     }
 }
 
+/// The world's control period (ns): one [`World::step`]. The paper's 20 ms (50 Hz). A
+/// recurrent blob trained at another period is refused by every pilot built here.
+pub const CONTROL_PERIOD_NS: u32 = firmware_core::PAPER_CONTROL_PERIOD_NS;
+
 /// The immutable part of a world, shared by every world of a batch: the track, the
 /// dynamics preset, the crash rules and the control period.
 #[derive(Clone, Copy, Debug)]
@@ -173,7 +177,7 @@ impl World {
             track: Track::figure_eight(),
             preset,
             rules,
-            dt_s: firmware_core::PAPER_CONTROL_PERIOD_NS as f32 * 1e-9,
+            dt_s: CONTROL_PERIOD_NS as f32 * 1e-9,
         }
     }
 

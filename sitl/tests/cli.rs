@@ -106,7 +106,7 @@ fn a_dnf_and_no_overtake_are_null() {
 fn bad_input_is_a_clear_error() {
     let corrupt = temp("corrupt.blob");
     std::fs::write(&corrupt, b"OVTK\x01\x00\x00\x00 definitely not a blob").unwrap();
-    let cases: [(&[&str], &str); 7] = [
+    let cases: [(&[&str], &str); 8] = [
         (
             &["eval", "--ego", "/no/such.blob"],
             "cannot read /no/such.blob",
@@ -126,6 +126,10 @@ fn bad_input_is_a_clear_error() {
         (
             &["eval", "--ego", "baseline", "--seconds", "0"],
             "number of seconds",
+        ),
+        (
+            &["eval", "--ego", "baseline", "--seconds", "0.01"],
+            "at least one control step",
         ),
         (&["eval", "--ego", "baseline:fast"], "cruise speed must be"),
         (&["eval"], "--ego"),

@@ -266,3 +266,25 @@ fn recorded_traces_mark_the_referees_overtakes() {
         "the policy overtakes the baseline (16 in 20 races)"
     );
 }
+
+/// A recurrent blob trained at another control period than the world's (10 ms against
+/// 20 ms) is refused by the pilot that would fly it (referee, `sitl fc`, quant checks), with
+/// both periods named; an MLP at another period flies (it keeps no state between steps).
+#[test]
+fn a_recurrent_blob_of_another_period_is_refused_by_the_pilot() {
+    use firmware_core::policy::TableRow;
+    use sitl::pilot::PilotSpec;
+    let blob = |row: TableRow, period_ns: u32| {
+        let mut h = firmware_core::synthetic::header(row, 2);
+        h.control_period_ns = period_ns;
+        let w = firmware_core::synthetic::weights(&h.architecture, 2);
+        firmware_core::blob::encode(&h, &w).expect("encode")
+    };
+    let e = PilotSpec::from_blob("g10ms", &blob(TableRow::G, 10_000_000)).expect_err("refused");
+    assert!(
+        e.contains("10000000 ns") && e.contains("20000000 ns"),
+        "{e}"
+    );
+    assert!(PilotSpec::from_blob("g20ms", &blob(TableRow::G, 20_000_000)).is_ok());
+    assert!(PilotSpec::from_blob("a10ms", &blob(TableRow::A, 10_000_000)).is_ok());
+}

@@ -195,6 +195,19 @@ fn validate_i8(arch: &Architecture, words: &[u32]) -> Result<(), BlobError> {
     r.finish()
 }
 
+/// The largest blob any reader accepts (bytes): far above row G in f32 (~1.2 MB), so a wrong
+/// file (`/dev/zero`, a video) is refused instead of read without end.
+pub const MAX_BLOB_BYTES: usize = 64 << 20;
+
+/// The control periods a blob may record (ns): 0.1 ms (10 kHz) to 1 s (1 Hz). The paper's
+/// is 20 ms.
+pub const CONTROL_PERIOD_RANGE_NS: core::ops::RangeInclusive<u32> = 100_000..=1_000_000_000;
+
+/// The observation scales (divisors, in m, m/s or rad/s) and clips a blob may record. The
+/// paper's are 12 m, 3 m/s, π rad/s and 1; a value far outside (1e-40, 1e30) is a corrupt
+/// header that would saturate or zero every input.
+pub const OBSERVATION_SCALE_RANGE: core::ops::RangeInclusive<f32> = 1e-3..=1e4;
+
 impl<'w> Blob<'w> {
     /// Validates `bytes` as a blob (every check of the module docs) without copying the
     /// weights.
@@ -207,6 +220,9 @@ impl<'w> Blob<'w> {
             needed,
             available: bytes.len(),
         };
+        if bytes.len() > MAX_BLOB_BYTES {
+            return Err(BlobError::TooLarge { bytes: bytes.len() });
+        }
         if bytes.len() < PREFIX_LEN {
             return Err(truncated(PREFIX_LEN));
         }
@@ -260,7 +276,20 @@ impl<'w> Blob<'w> {
         if !header.action_map.is_valid() {
             return Err(BlobError::InvalidActionMap);
         }
-        if header.control_period_ns == 0 {
+        let o = &header.observation;
+        let scales = [
+            o.gate_position_scale_m,
+            o.velocity_scale_mps,
+            o.body_rate_scale_radps,
+            o.opponent_position_scale_m,
+            o.opponent_velocity_scale_mps,
+            o.opponent_rate_scale_radps,
+            o.clip,
+        ];
+        if !scales.iter().all(|s| OBSERVATION_SCALE_RANGE.contains(s)) {
+            return Err(BlobError::ImplausibleObservationScale);
+        }
+        if !CONTROL_PERIOD_RANGE_NS.contains(&header.control_period_ns) {
             return Err(BlobError::InvalidControlPeriod);
         }
         let arch = &header.architecture;

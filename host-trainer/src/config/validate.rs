@@ -39,6 +39,14 @@ fn run(c: &TrainConfig) -> Result<(), ConfigError> {
     if c.run.name.is_empty() || c.run.name.len() > 32 {
         return bad("run.name must be 1 to 32 bytes");
     }
+    // The name becomes file names under --out (`<name>.blob`): no separators, no `..`,
+    // nothing hidden, so every file stays in the run directory.
+    let plain = |ch: char| ch.is_ascii_alphanumeric() || matches!(ch, '_' | '-' | '.');
+    if !c.run.name.chars().all(plain) || c.run.name.starts_with('.') {
+        return bad(
+            "run.name may hold only letters, digits, '_', '-' and '.', and not start with '.' (it names files under --out)",
+        );
+    }
     if !('A'..='G').contains(&c.run.row) {
         return bad(format!("run.row '{}' is not a Table 1 row A-G", c.run.row));
     }

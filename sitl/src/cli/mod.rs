@@ -145,9 +145,14 @@ pub fn parse_preset(s: &str) -> Result<Preset, String> {
     s.parse::<PresetName>().map(PresetName::preset)
 }
 
+/// Seconds of an episode: at least one control step ([`sitl::world::CONTROL_PERIOD_NS`],
+/// 0.02 s), at most an hour.
 fn parse_seconds(s: &str) -> Result<f32, String> {
+    let step_s = sitl::world::CONTROL_PERIOD_NS as f32 * 1e-9;
     match s.parse::<f32>() {
-        Ok(v) if v > 0.0 && v <= 3600.0 => Ok(v),
-        _ => Err("must be a number of seconds in (0, 3600]".into()),
+        Ok(v) if v >= step_s && v <= 3600.0 => Ok(v),
+        _ => Err(format!(
+            "must be a number of seconds in [{step_s}, 3600] (at least one control step)"
+        )),
     }
 }

@@ -7,9 +7,10 @@ use firmware_core::Controller;
 use firmware_core::blob::AlignedBytes;
 use firmware_core::track::Track;
 
-/// The largest blob an environment reads (bytes): well above row G in f32 (~1.3 MB), so a
-/// wrong path (`/dev/zero`) is refused instead of read without end.
-pub const MAX_BLOB_BYTES: u64 = 64 << 20;
+/// The largest blob an environment reads (bytes): firmware-core's limit
+/// ([`firmware_core::blob::MAX_BLOB_BYTES`]), so a wrong path (`/dev/zero`) is refused
+/// instead of read without end.
+pub const MAX_BLOB_BYTES: u64 = firmware_core::blob::MAX_BLOB_BYTES as u64;
 
 /// The bytes of the blob at `path`, at most [`MAX_BLOB_BYTES`].
 pub fn read_blob(path: &std::path::Path) -> Result<AlignedBytes, EnvError> {
@@ -68,12 +69,9 @@ impl Race {
         };
         let blob = firmware_core::blob::Blob::parse(interned(&bytes).as_bytes())
             .map_err(|e| unflyable(&e))?;
-        let opponent = Controller::new(
-            &blob,
-            Track::figure_eight(),
-            blob.header().control_period_ns,
-        )
-        .map_err(|e| unflyable(&e))?;
+        let opponent =
+            crate::pilot::world_rate_controller(interned(&bytes).as_bytes(), Track::figure_eight())
+                .map_err(|e| unflyable(&e))?;
         if blob.header().observation.layout.needs_opponent() {
             return Err(unflyable(
                 &"the opponent's policy observes an opponent itself; stage 2 races a time-trial (17-value) policy",
