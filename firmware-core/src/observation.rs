@@ -213,18 +213,25 @@ impl ObservationSpec {
         self.layout.dim()
     }
 
+    /// The six scales and the clip, in header order: gate position (m), velocity (m/s),
+    /// body rates (rad/s), opponent position (m), velocity (m/s) and rates (rad/s), clip.
+    pub const fn scales(&self) -> [f32; 7] {
+        [
+            self.gate_position_scale_m,
+            self.velocity_scale_mps,
+            self.body_rate_scale_radps,
+            self.opponent_position_scale_m,
+            self.opponent_velocity_scale_mps,
+            self.opponent_rate_scale_radps,
+            self.clip,
+        ]
+    }
+
     /// True when this pipeline can build observations for the spec: same version, every
     /// scale finite and positive.
     pub fn is_supported(&self) -> bool {
-        let positive = |s: f32| s.is_finite() && s > 0.0;
         (self.version == OBSERVATION_PIPELINE_VERSION || self.version == FOLDED_PIPELINE_VERSION)
-            && positive(self.gate_position_scale_m)
-            && positive(self.velocity_scale_mps)
-            && positive(self.body_rate_scale_radps)
-            && positive(self.opponent_position_scale_m)
-            && positive(self.opponent_velocity_scale_mps)
-            && positive(self.opponent_rate_scale_radps)
-            && positive(self.clip)
+            && self.scales().iter().all(|s| s.is_finite() && *s > 0.0)
     }
 
     /// Builds the observation of `own` flying to `target_gate`, after `previous_action`,

@@ -40,14 +40,18 @@ fn side_by_side(policy: &Policy<'_>, obs: &[f32]) -> Vec<[u32; ACTION_DIM]> {
         .collect()
 }
 
-fn check(row: TableRow, int8: bool, seed: u64, obs: &[f32]) {
+/// The synthetic blob of `row` (seed `seed`) in f32 or int8.
+fn synthetic_blob(row: TableRow, int8: bool, seed: u64) -> AlignedBytes {
     let bytes = if int8 {
         synthetic::blob_i8(row, seed)
     } else {
         synthetic::blob(row, seed)
-    }
-    .expect("encode");
-    let aligned = AlignedBytes::new(&bytes);
+    };
+    AlignedBytes::new(&bytes.expect("encode"))
+}
+
+fn check(row: TableRow, int8: bool, seed: u64, obs: &[f32]) {
+    let aligned = synthetic_blob(row, int8, seed);
     let policy = Blob::parse(aligned.as_bytes())
         .and_then(|b| b.policy())
         .expect("policy");
@@ -88,13 +92,7 @@ fn policy_of(aligned: &AlignedBytes) -> Policy<'_> {
 /// `step_lanes` is `act` from that env's own state, bit for bit, at every step, and the
 /// states agree too.
 fn check_recurrent(row: TableRow, int8: bool, seed: u64, obs: &[f32], resets: &[u16]) {
-    let bytes = if int8 {
-        synthetic::blob_i8(row, seed)
-    } else {
-        synthetic::blob(row, seed)
-    }
-    .expect("encode");
-    let aligned = AlignedBytes::new(&bytes);
+    let aligned = synthetic_blob(row, int8, seed);
     let policy = policy_of(&aligned);
     let dim = policy.obs_dim();
     let mut one = [policy.initial_state(); LANES];

@@ -73,16 +73,19 @@ pub fn describe(path: &Path, bytes: &[u8], blob: &Blob<'_>) -> String {
             ""
         }
     );
+    let [
+        gate,
+        velocity,
+        rates,
+        opp_position,
+        opp_velocity,
+        opp_rates,
+        clip,
+    ] = o.scales();
     let _ = writeln!(
         s,
         "                  scales: gate {} m, velocity {} m/s, rates {} rad/s; opponent {} m, {} m/s, {} rad/s; clip ±{}",
-        o.gate_position_scale_m,
-        o.velocity_scale_mps,
-        o.body_rate_scale_radps,
-        o.opponent_position_scale_m,
-        o.opponent_velocity_scale_mps,
-        o.opponent_rate_scale_radps,
-        o.clip
+        gate, velocity, rates, opp_position, opp_velocity, opp_rates, clip
     );
     let _ = writeln!(
         s,

@@ -276,16 +276,7 @@ impl<'w> Blob<'w> {
         if !header.action_map.is_valid() {
             return Err(BlobError::InvalidActionMap);
         }
-        let o = &header.observation;
-        let scales = [
-            o.gate_position_scale_m,
-            o.velocity_scale_mps,
-            o.body_rate_scale_radps,
-            o.opponent_position_scale_m,
-            o.opponent_velocity_scale_mps,
-            o.opponent_rate_scale_radps,
-            o.clip,
-        ];
+        let scales = header.observation.scales();
         if !scales.iter().all(|s| OBSERVATION_SCALE_RANGE.contains(s)) {
             return Err(BlobError::ImplausibleObservationScale);
         }
