@@ -44,6 +44,19 @@ impl WeightDtype {
     }
 }
 
+/// The largest blob any reader accepts (bytes): far above row G in f32 (~1.2 MB), so a wrong
+/// file (`/dev/zero`, a video) is refused instead of read without end.
+pub const MAX_BLOB_BYTES: usize = 64 << 20;
+
+/// The control periods a blob may record (ns): 0.1 ms (10 kHz) to 1 s (1 Hz). The paper's
+/// is 20 ms.
+pub const CONTROL_PERIOD_RANGE_NS: core::ops::RangeInclusive<u32> = 100_000..=1_000_000_000;
+
+/// The observation scales (divisors, in m, m/s or rad/s) and clips a blob may record. The
+/// paper's are 12 m, 3 m/s, π rad/s and 1; a value far outside (1e-40, 1e30) is a corrupt
+/// header that would saturate or zero every input.
+pub const OBSERVATION_SCALE_RANGE: core::ops::RangeInclusive<f32> = 1e-3..=1e4;
+
 /// A defect in a blob.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[non_exhaustive]
@@ -83,13 +96,13 @@ pub enum BlobError {
     UnsupportedArchitecture,
     /// The action map is not finite and positive.
     InvalidActionMap,
-    /// The control period is outside [`crate::blob::CONTROL_PERIOD_RANGE_NS`] (0.1 ms to 1 s).
+    /// The control period is outside [`CONTROL_PERIOD_RANGE_NS`] (0.1 ms to 1 s).
     InvalidControlPeriod,
     /// An observation scale or the clip is outside
-    /// [`crate::blob::OBSERVATION_SCALE_RANGE`] (1e-3 to 1e4): finite and positive, but no
+    /// [`OBSERVATION_SCALE_RANGE`] (1e-3 to 1e4): finite and positive, but no
     /// pipeline divides by it on purpose.
     ImplausibleObservationScale,
-    /// The blob is larger than [`crate::blob::MAX_BLOB_BYTES`].
+    /// The blob is larger than [`MAX_BLOB_BYTES`].
     TooLarge {
         /// Bytes offered.
         bytes: usize,
@@ -166,7 +179,7 @@ impl core::fmt::Display for BlobError {
             Self::TooLarge { bytes } => write!(
                 f,
                 "{bytes} bytes is larger than any blob ({} MiB at most)",
-                crate::blob::MAX_BLOB_BYTES >> 20
+                MAX_BLOB_BYTES >> 20
             ),
             Self::PayloadSizeMismatch {
                 expected_floats,

@@ -57,7 +57,10 @@
 //! panics and nothing is allocated.
 
 use crate::crc32::crc32;
-pub use crate::format::{BlobError, FORMAT_VERSION, MAGIC, WeightDtype};
+pub use crate::format::{
+    BlobError, CONTROL_PERIOD_RANGE_NS, FORMAT_VERSION, MAGIC, MAX_BLOB_BYTES,
+    OBSERVATION_SCALE_RANGE, WeightDtype,
+};
 use crate::nn::WeightReader;
 use crate::observation::ObservationSpec;
 use crate::policy::{Architecture, Policy};
@@ -194,19 +197,6 @@ fn validate_i8(arch: &Architecture, words: &[u32]) -> Result<(), BlobError> {
     }
     r.finish()
 }
-
-/// The largest blob any reader accepts (bytes): far above row G in f32 (~1.2 MB), so a wrong
-/// file (`/dev/zero`, a video) is refused instead of read without end.
-pub const MAX_BLOB_BYTES: usize = 64 << 20;
-
-/// The control periods a blob may record (ns): 0.1 ms (10 kHz) to 1 s (1 Hz). The paper's
-/// is 20 ms.
-pub const CONTROL_PERIOD_RANGE_NS: core::ops::RangeInclusive<u32> = 100_000..=1_000_000_000;
-
-/// The observation scales (divisors, in m, m/s or rad/s) and clips a blob may record. The
-/// paper's are 12 m, 3 m/s, π rad/s and 1; a value far outside (1e-40, 1e30) is a corrupt
-/// header that would saturate or zero every input.
-pub const OBSERVATION_SCALE_RANGE: core::ops::RangeInclusive<f32> = 1e-3..=1e4;
 
 impl<'w> Blob<'w> {
     /// Validates `bytes` as a blob (every check of the module docs) without copying the
