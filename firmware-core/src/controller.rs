@@ -199,6 +199,7 @@ impl<'w> Controller<'w> {
     pub fn step(&mut self, own: &VehicleState, opponent: Option<&VehicleState>) -> StepOutput {
         match self.begin_step(own, opponent) {
             Ok(pending) => {
+                // 40 infer (in place: no copy of the recurrent state on the stack)
                 let mean = self.policy.act(&pending.obs, &mut self.state);
                 self.finish_step(&pending, mean)
             }
@@ -215,6 +216,8 @@ impl<'w> Controller<'w> {
         own: &VehicleState,
         opponent: Option<&VehicleState>,
     ) -> Result<PendingStep, StepOutput> {
+        // 10 validate: the observation refuses non-finite inputs before any state changes.
+        // 20 target gate, 30 observe
         let (progress, gate_event, obs) = self.observe_next(own, opponent);
         self.progress = progress;
         let (obs, folded) = match obs {
@@ -245,9 +248,11 @@ impl<'w> Controller<'w> {
         mean: Option<[f32; ACTION_DIM]>,
     ) -> StepOutput {
         let Some(mean) = mean.filter(|m| m.iter().all(|a| a.is_finite())) else {
+            // Only weights near f32::MAX can overflow; a poisoned state would stay poisoned.
             self.state.clear();
             return self.fail_safe(StepFault::NonFiniteAction, pending.gate_event);
         };
+        // 50 clip (and renumber a folded step's action), 60 map to rpm
         let action = unfold_action(
             self.fold.as_ref(),
             pending.folded,
@@ -321,6 +326,8 @@ impl<'w> Controller<'w> {
         out
     }
 
+    /// The gate bookkeeping and the observation the next [`Controller::step`] would make
+    /// from these states, without changing anything.
     #[inline(always)]
     fn observe_next(
         &self,

@@ -52,9 +52,7 @@ fn synthetic_blob(row: TableRow, int8: bool, seed: u64) -> AlignedBytes {
 
 fn check(row: TableRow, int8: bool, seed: u64, obs: &[f32]) {
     let aligned = synthetic_blob(row, int8, seed);
-    let policy = Blob::parse(aligned.as_bytes())
-        .and_then(|b| b.policy())
-        .expect("policy");
+    let policy = policy_of(&aligned);
     assert_eq!(
         side_by_side(&policy, obs),
         one_by_one(&policy, obs),
@@ -151,22 +149,19 @@ fn every_lane_is_act_bit_for_bit_on_the_recurrent_rows_across_resets() {
 
 #[test]
 fn step_lanes_refuses_another_policys_states_and_touches_none() {
-    let bytes = synthetic::blob(TableRow::G, 1).expect("encode");
-    let aligned = AlignedBytes::new(&bytes);
+    let aligned = synthetic_blob(TableRow::G, false, 1);
     let policy = policy_of(&aligned);
     let obs = vec![0.5; 30 * LANES];
     let mut states = [policy.initial_state(); LANES];
     // One lane holds a one-layer state (row E's): nothing runs, nothing changes.
-    let e_bytes = synthetic::blob(TableRow::E, 1).expect("encode");
-    let e_aligned = AlignedBytes::new(&e_bytes);
+    let e_aligned = synthetic_blob(TableRow::E, false, 1);
     states[9] = policy_of(&e_aligned).initial_state();
     let before = states;
     assert!(policy.step_lanes(&obs, states.each_mut()).is_none());
     assert_eq!(states, before);
     assert!(policy.step_lanes(&obs[1..], states.each_mut()).is_none());
     // A feed-forward policy ignores its (stateless) states.
-    let a_bytes = synthetic::blob(TableRow::A, 1).expect("encode");
-    let a_aligned = AlignedBytes::new(&a_bytes);
+    let a_aligned = synthetic_blob(TableRow::A, false, 1);
     let a = policy_of(&a_aligned);
     let mut stateless = [a.initial_state(); LANES];
     assert_eq!(
@@ -178,20 +173,27 @@ fn step_lanes_refuses_another_policys_states_and_touches_none() {
 #[test]
 fn recurrent_rows_and_wrong_lengths_are_refused() {
     for row in [TableRow::E, TableRow::G] {
-        let bytes = synthetic::blob(row, 1).expect("encode");
-        let aligned = AlignedBytes::new(&bytes);
-        let policy = Blob::parse(aligned.as_bytes())
-            .and_then(|b| b.policy())
-            .expect("policy");
+        let aligned = synthetic_blob(row, false, 1);
+        let policy = policy_of(&aligned);
         assert!(policy.act_lanes(&vec![0.0; 30 * LANES]).is_none());
     }
-    let bytes = synthetic::blob(TableRow::A, 1).expect("encode");
-    let aligned = AlignedBytes::new(&bytes);
-    let policy = Blob::parse(aligned.as_bytes())
-        .and_then(|b| b.policy())
-        .expect("policy");
+    let aligned = synthetic_blob(TableRow::A, false, 1);
+    let policy = policy_of(&aligned);
     assert!(policy.act_lanes(&vec![0.0; 17 * LANES - 1]).is_none());
     assert!(policy.act_lanes(&vec![0.0; 17 * LANES]).is_some());
+}
+
+/// One observation value: mostly in the training range, often a signed zero, NaN, an
+/// infinity or a huge negative.
+fn observation_value() -> impl Strategy<Value = f32> {
+    prop_oneof![
+        8 => -4.0f32..4.0,
+        1 => Just(0.0f32),
+        1 => Just(-0.0f32),
+        1 => Just(f32::NAN),
+        1 => Just(f32::INFINITY),
+        1 => Just(-1e30f32),
+    ]
 }
 
 proptest! {
@@ -202,17 +204,7 @@ proptest! {
     #[test]
     fn any_inputs_give_acts_bits(
         seed in 0u64..1000,
-        values in proptest::collection::vec(
-            prop_oneof![
-                8 => -4.0f32..4.0,
-                1 => Just(0.0f32),
-                1 => Just(-0.0f32),
-                1 => Just(f32::NAN),
-                1 => Just(f32::INFINITY),
-                1 => Just(-1e30f32),
-            ],
-            17 * LANES,
-        ),
+        values in proptest::collection::vec(observation_value(), 17 * LANES),
     ) {
         check(TableRow::A, false, seed, &values);
     }
@@ -224,16 +216,7 @@ proptest! {
         row in prop_oneof![Just(TableRow::E), Just(TableRow::F), Just(TableRow::G)],
         int8 in any::<bool>(),
         seed in 0u64..1000,
-        values in proptest::collection::vec(
-            prop_oneof![
-                8 => -4.0f32..4.0,
-                1 => Just(0.0f32),
-                1 => Just(-0.0f32),
-                1 => Just(f32::NAN),
-                1 => Just(-1e30f32),
-            ],
-            30 * LANES * 4,
-        ),
+        values in proptest::collection::vec(observation_value(), 30 * LANES * 4),
         resets in proptest::collection::vec(any::<u16>(), 4),
     ) {
         check_recurrent(row, int8, seed, &values, &resets);

@@ -332,8 +332,6 @@ fn the_std_ceiling_holds_against_the_entropy_bonus() {
 #[test]
 fn recurrent_rollout_actions_are_act_from_each_envs_own_state() {
     use firmware_core::blob::AlignedBytes;
-    use firmware_core::observation::Observation;
-    use host_trainer::rng::normal;
     use host_trainer::rollout::{Rollout, collect_rollout};
     use sitl::env::{EnvConfig, VecEnv};
     let bytes = AlignedBytes::new(&firmware_core::synthetic::blob(TableRow::G, 3).unwrap());
@@ -360,31 +358,8 @@ fn recurrent_rollout_actions_are_act_from_each_envs_own_state() {
             |_, _| {},
         )
         .unwrap();
-        for (i, ((o, a), done)) in rollout
-            .obs
-            .chunks_exact(30)
-            .zip(rollout.actions.chunks_exact(4))
-            .zip(&rollout.dones)
-            .enumerate()
-        {
-            let z: [f32; 4] = core::array::from_fn(|_| normal(&mut replay));
-            let state = &mut states[i % envs];
-            let mean = policy
-                .act(&Observation::from_values(o).unwrap(), state)
-                .unwrap();
-            let want: [f32; 4] = core::array::from_fn(|k| mean[k] + std[k] * z[k]);
-            assert_eq!(
-                a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
-                want.map(f32::to_bits),
-                "window {window}, env {}, step {}",
-                i % envs,
-                i / envs
-            );
-            if *done {
-                state.clear();
-                ends += 1;
-            }
-        }
+        let label = format!("window {window}");
+        ends += assert_rollout_replays(&policy, &std, &rollout, &mut states, &mut replay, &label);
     }
     assert!(ends > 0, "no episode ended: the resets went untested");
 }
@@ -396,9 +371,7 @@ fn recurrent_rollout_actions_are_act_from_each_envs_own_state() {
 /// envs (one lane group and three one by one).
 #[test]
 fn rollout_actions_are_the_deployed_networks_act_plus_noise() {
-    use firmware_core::observation::Observation;
     use firmware_core::policy::Policy;
-    use host_trainer::rng::normal;
     use host_trainer::rollout::{Rollout, collect_rollout};
     use sitl::env::{EnvConfig, VecEnv};
     let device = Device::flex().autodiff();
@@ -424,24 +397,56 @@ fn rollout_actions_are_the_deployed_networks_act_plus_noise() {
     )
     .unwrap();
     assert_eq!(rollout.actions.len(), envs * steps * 4);
-    for (i, (o, a)) in rollout
+    let mut states = vec![policy.initial_state(); envs];
+    assert_rollout_replays(
+        &policy,
+        &std,
+        &rollout,
+        &mut states,
+        &mut replay,
+        "one window",
+    );
+}
+
+/// Replays `rollout` env by env: every recorded action must be, bit for bit, `policy.act` on
+/// the recorded observation from that env's own state in `states` (zeroed at the env's
+/// episode ends; a feed-forward policy's states are stateless) plus σ times the noise drawn
+/// serially from `replay`. Returns the number of episode ends seen.
+fn assert_rollout_replays(
+    policy: &firmware_core::policy::Policy<'_>,
+    std: &[f32],
+    rollout: &host_trainer::rollout::Rollout,
+    states: &mut [firmware_core::policy::PolicyState],
+    replay: &mut ChaCha8Rng,
+    label: &str,
+) -> usize {
+    use firmware_core::observation::Observation;
+    let (envs, dim) = (states.len(), policy.obs_dim());
+    let mut ends = 0;
+    for (i, ((o, a), done)) in rollout
         .obs
-        .chunks_exact(17)
+        .chunks_exact(dim)
         .zip(rollout.actions.chunks_exact(4))
+        .zip(&rollout.dones)
         .enumerate()
     {
-        let z: [f32; 4] = core::array::from_fn(|_| normal(&mut replay));
-        let mut state = policy.initial_state();
+        let z: [f32; 4] = core::array::from_fn(|_| host_trainer::rng::normal(replay));
+        let state = &mut states[i % envs];
         let mean = policy
-            .act(&Observation::from_values(o).unwrap(), &mut state)
+            .act(&Observation::from_values(o).unwrap(), state)
             .unwrap();
         let want: [f32; 4] = core::array::from_fn(|k| mean[k] + std[k] * z[k]);
         assert_eq!(
             a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
             want.map(f32::to_bits),
-            "sample {i} (env {}, step {})",
+            "{label}, env {}, step {}",
             i % envs,
             i / envs
         );
+        if *done {
+            state.clear();
+            ends += 1;
+        }
     }
+    ends
 }

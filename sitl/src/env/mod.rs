@@ -550,7 +550,8 @@ fn opponent_commands(policy: Option<&Policy<'static>>, slots: &mut [Slot]) -> Ve
     commands
 }
 
-/// Steps one env, the opponent (stage 2) flying `opponent_command`; returns what the step
+/// Steps one env, the opponent flying `opponent_command` (stage 2; `None` in a time trial:
+/// the ego flies alone); returns what the step
 /// was made of.
 #[allow(clippy::too_many_arguments)]
 fn step_slot(
@@ -566,12 +567,12 @@ fn step_slot(
     let d = &slot.drones[0];
     let gate = world.track.gate(d.progress.target).center_m;
     let before = d.position_m();
-    let (result, opponent_crashed) = match (slot.opponent.is_some(), opponent_command) {
-        (true, Some(opp_command)) => {
+    let (result, opponent_crashed) = match opponent_command {
+        Some(opp_command) => {
             let [e, o] = world.step(&mut slot.drones, &[map.command(action), opp_command]);
             (e, o.crash.is_some())
         }
-        _ => {
+        None => {
             let [ego, _] = &mut slot.drones;
             let [e] = world.step(core::array::from_mut(ego), &[map.command(action)]);
             (e, false)

@@ -69,9 +69,14 @@ impl Race {
         };
         let blob = firmware_core::blob::Blob::parse(interned(&bytes).as_bytes())
             .map_err(|e| unflyable(&e))?;
-        let opponent =
-            crate::pilot::world_rate_controller(interned(&bytes).as_bytes(), Track::figure_eight())
-                .map_err(|e| unflyable(&e))?;
+        // At the world's period, as every pilot (`pilot::world_rate_controller`), from the
+        // blob already parsed.
+        let opponent = Controller::new(
+            &blob,
+            Track::figure_eight(),
+            crate::world::CONTROL_PERIOD_NS,
+        )
+        .map_err(|e| unflyable(&e))?;
         if blob.header().observation.layout.needs_opponent() {
             return Err(unflyable(
                 &"the opponent's policy observes an opponent itself; stage 2 races a time-trial (17-value) policy",
