@@ -4,12 +4,20 @@
 //! time, global clip, Adam), actor and critic passes on two threads. The reference:
 //! PyTorch 16.5 k samples/s, burn flex about 6 k with a fused cell.
 //!
+//! - `g_256x100_parallel`: `burn`'s autodiff (`[ppo] update = "burn"`);
+//! - `g_256x100_fused` and `g_64x100_fused`: the fused update ([`host_trainer::fused`]) on
+//!   the same batch, the whole window and a quarter of the envs (a minibatch of a 256-env
+//!   run with 4 minibatches);
+//! - `prepare_256x100_{burn,fused}`: the batch's forward pass over the whole rollout (old
+//!   means, values, bootstrap, the critic's next states).
+//!
 //! `cargo bench -p host-trainer --bench recurrent_update`
 
 use burn::tensor::Device;
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use firmware_core::policy::{Architecture, TableRow};
-use host_trainer::config::TrainConfig;
+use host_trainer::config::{TrainConfig, UpdateKind};
+use host_trainer::fused::FusedLearner;
 use host_trainer::nets::{PolicyNet, ValueNet};
 use host_trainer::ppo::RecurrentLearner;
 use host_trainer::recurrent::{RecurrentActor, RecurrentCritic};
@@ -54,9 +62,29 @@ fn update(c: &mut Criterion) {
     let mut g = c.benchmark_group("recurrent_update");
     g.throughput(Throughput::Elements((SEQUENCES * STEPS) as u64));
     g.sample_size(10);
+    let mut fused = FusedLearner::recurrent(&learner.actor, &learner.critic, None);
+    let mut lr = p.learning_rate;
+    g.bench_function("g_256x100_fused", |b| {
+        b.iter(|| fused.train_minibatch(&batch, &envs, &p, &mut lr, true, true))
+    });
     g.bench_function("g_256x100_parallel", |b| {
         b.iter(|| learner.train_minibatch(&batch, &envs, &p))
     });
+    g.throughput(Throughput::Elements((SEQUENCES / 4 * STEPS) as u64));
+    g.bench_function("g_64x100_fused", |b| {
+        b.iter(|| fused.train_minibatch(&batch, &envs[..SEQUENCES / 4], &p, &mut lr, true, true))
+    });
+    g.throughput(Throughput::Elements((SEQUENCES * STEPS) as u64));
+    let r = rollout();
+    for (name, update) in [("burn", UpdateKind::Burn), ("fused", UpdateKind::Fused)] {
+        let p = host_trainer::config::PpoConfig {
+            update,
+            ..p.clone()
+        };
+        g.bench_function(format!("prepare_256x100_{name}"), |b| {
+            b.iter(|| learner.prepare(&r, &p))
+        });
+    }
     g.finish();
 }
 

@@ -165,6 +165,12 @@ pub struct WarmStart {
     /// last. For all the stages; set it here, not per refine stage.
     #[serde(default, skip_serializing_if = "is_false")]
     pub keep_best_round: bool,
+    /// Label the states with the teacher's means clamped to the rotor-command range
+    /// [-1, 1], the commands it actually flies (a PPO teacher's means can lie far outside,
+    /// where the clamp makes them all the same command, and fitting them wastes the
+    /// student's capacity). Off by default: the shipped students were labelled unclamped.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub clamp_labels: bool,
     /// Further DAgger stages after these rounds, in order, each from the student the last
     /// one made, with the student flying from its first round (`[[warm_start.refine]]`).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
@@ -392,27 +398,41 @@ pub struct PpoConfig {
     /// fall. Paper: false. Default false.
     #[serde(default)]
     pub init_hover: bool,
-    /// How the feed-forward networks (rows A-D) take their PPO steps: `"fused"`, the
-    /// hand-written CPU update of [`crate::fused`] (default), or `"burn"`, the same update on
-    /// `burn`'s autodiff (for comparison). Recurrent networks always use `burn`. (Left out of
-    /// the canonical TOML at its default, so configs written before it existed keep their
-    /// hash.)
+    /// How the networks take their PPO steps: `"fused"`, the hand-written CPU update of
+    /// [`crate::fused`] (feed-forward and recurrent networks), or `"burn"`, the same update
+    /// on `burn`'s autodiff. Absent: fused for the feed-forward rows A-D, burn for the
+    /// recurrent rows E-G, which is how the shipped E-G policies were trained (before the
+    /// recurrent fused update existed), so their configs still make them; new recurrent
+    /// configs say `update = "fused"`. (Left out of the canonical TOML when absent, so
+    /// configs written before it existed keep their hash.)
     #[serde(default, skip_serializing_if = "UpdateKind::is_default")]
     pub update: UpdateKind,
 }
 
-/// Which implementation takes the PPO steps of the feed-forward networks.
+/// Which implementation takes the PPO steps.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum UpdateKind {
-    /// The fused CPU update ([`crate::fused`]): the same math, several times faster.
+    /// Not set: [`UpdateKind::Fused`] for feed-forward networks, [`UpdateKind::Burn`] for
+    /// recurrent ones (see [`PpoConfig::update`]).
     #[default]
+    Auto,
+    /// The fused CPU update ([`crate::fused`]): the same math, several times faster.
     Fused,
     /// `burn`'s autodiff and Adam.
     Burn,
 }
 
 impl UpdateKind {
+    /// The implementation that runs for a network that is `recurrent` or not.
+    pub fn resolve(self, recurrent: bool) -> Self {
+        match self {
+            Self::Auto if recurrent => Self::Burn,
+            Self::Auto => Self::Fused,
+            k => k,
+        }
+    }
+
     /// The default (for `skip_serializing_if`).
     pub fn is_default(&self) -> bool {
         *self == Self::default()

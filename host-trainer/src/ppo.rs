@@ -14,10 +14,12 @@
 //! matmuls at these sizes use one core, so this is what makes the second core work (measured
 //! in docs/PERFORMANCE.md).
 //!
-//! **The fused update.** For the feed-forward networks the minibatch steps run by default in
-//! [`crate::fused`], a hand-written CPU implementation of exactly this math (its parity with
-//! the `burn` passes below is tested in `host-trainer/tests/fused.rs`); `[ppo] update =
-//! "burn"` keeps them on `burn`. The `burn` modules stay the networks of record.
+//! **The fused update.** The minibatch steps and the batch's forward pass can run in
+//! [`crate::fused`], a hand-written CPU implementation of exactly this math for the
+//! feed-forward and the recurrent networks (its parity with the `burn` passes below is
+//! tested in `host-trainer/tests/fused.rs` and `fused_recurrent.rs`): by default for the
+//! feed-forward networks, with `[ppo] update = "fused"` for the recurrent ones
+//! ([`crate::config::PpoConfig::update`]). The `burn` modules stay the networks of record.
 //!
 //! Departures from RSL-RL, each documented in docs/TRAINING.md: a fresh minibatch permutation
 //! every epoch (RSL-RL draws one per update), a log-parameterised σ (RSL-RL's default stores σ
@@ -32,7 +34,7 @@
 
 use crate::batch::{Batch, LN_2PI, Minibatch, Sequences, gae, gather, gaussian_log_prob, tensor2};
 use crate::config::{PpoConfig, UpdateKind};
-use crate::fused::{FusedLearner, FusedOptim};
+use crate::fused::{FusedLearner, FusedOptim, RolloutOutputs};
 use crate::grads::{flatten_gradients, scale, squared_norm};
 use crate::model::{Actor, Critic, values};
 use crate::nets::{PolicyNet, PpoNet};
@@ -131,8 +133,8 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             sequence: Self::RECURRENT.then(|| Sequences::of(r)),
         };
         let (old_mean, old_values, last_values, critic_next) =
-            match self.fused_outputs(&batch.obs, &r.last_obs, p) {
-                Some((mean, values, last)) => (mean, values, last, Vec::new()),
+            match self.fused_outputs(&batch, &r.last_obs, p) {
+                Some(o) => (o.mean, o.values, o.last_values, o.critic_next),
                 None => {
                     let (mean, _, _) = actor.rollout_outputs(&batch, None, &device);
                     let (values, last, next) =
@@ -195,22 +197,59 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
         }
     }
 
-    /// [`Learner::prepare`]'s means and values of `obs` and bootstrap values of `last_obs`
-    /// from the fused forward pass ([`FusedLearner::rollout_outputs`]) where the update is
-    /// fused, else `None`.
+    /// [`Learner::prepare`]'s means and values of the batch's observations, bootstrap values
+    /// of `last_obs` and the critic's next window states (recurrent networks) from the
+    /// fused forward pass where the update is fused, else `None`.
     fn fused_outputs(
         &self,
-        obs: &[f32],
+        batch: &Batch,
         last_obs: &[f32],
         p: &PpoConfig,
-    ) -> Option<(Vec<f32>, Vec<f32>, Vec<f32>)> {
-        if Self::RECURRENT || p.update != UpdateKind::Fused {
+    ) -> Option<RolloutOutputs> {
+        if p.update.resolve(Self::RECURRENT) != UpdateKind::Fused {
             return None;
         }
+        let mut fused = self.fused_learner(None)?;
+        Some(if fused.is_recurrent() {
+            fused.window_outputs(batch, last_obs)
+        } else {
+            let (mean, values, last_values) = fused.rollout_outputs(&batch.obs, last_obs);
+            RolloutOutputs {
+                mean,
+                values,
+                last_values,
+                critic_next: Vec::new(),
+            }
+        })
+    }
+
+    /// The fused update's copy of these networks with Adam's state `optim` (`None` for
+    /// networks it does not run).
+    fn fused_learner(&self, optim: Option<FusedOptim>) -> Option<FusedLearner> {
         let this: &dyn std::any::Any = self;
-        let mlp = this.downcast_ref::<Learner<Actor, Critic>>()?;
-        let mut fused = FusedLearner::new(&mlp.actor, &mlp.critic, None);
-        Some(fused.rollout_outputs(obs, last_obs))
+        if let Some(l) = this.downcast_ref::<Learner<Actor, Critic>>() {
+            return Some(FusedLearner::new(&l.actor, &l.critic, optim));
+        }
+        let l = this.downcast_ref::<RecurrentLearner>()?;
+        Some(FusedLearner::recurrent(&l.actor, &l.critic, optim))
+    }
+
+    /// The fused update's copy of these networks, Adam's state moved into it (`None`, the
+    /// state kept, for networks it does not run).
+    fn take_fused(&mut self) -> Option<FusedLearner> {
+        let optim = self.fused_optim.take();
+        let fused = self.fused_learner(optim.clone());
+        if fused.is_none() {
+            self.fused_optim = optim;
+        }
+        fused
+    }
+
+    /// Copies the fused update's parameters back into the networks and keeps its Adam
+    /// state.
+    fn put_fused(&mut self, fused: FusedLearner) {
+        fused.write_to(&mut self.actor, &mut self.critic);
+        self.fused_optim = Some(fused.into_optim());
     }
 
     /// The gradient of the actor's loss (clipped surrogate minus the entropy bonus) over all
@@ -245,25 +284,61 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
     }
 
     /// `epochs × minibatches` PPO steps on `batch`, minibatches drawn from `rng`: samples
-    /// for feed-forward networks, whole env windows for recurrent ones. The feed-forward
-    /// networks take their steps in the fused update ([`crate::fused`]) unless `p.update`
-    /// is `"burn"`.
+    /// for feed-forward networks, whole env windows for recurrent ones. The steps are the
+    /// fused update's ([`crate::fused`]) or `burn`'s as `p.update` resolves for these
+    /// networks ([`crate::config::PpoConfig::update`]).
     pub fn update(&mut self, batch: &Batch, p: &PpoConfig, rng: &mut ChaCha8Rng) -> UpdateStats {
-        if !Self::RECURRENT && p.update == UpdateKind::Fused {
-            let this: &mut dyn std::any::Any = self;
-            if let Some(mlp) = this.downcast_mut::<Learner<Actor, Critic>>() {
-                return mlp.update_fused(batch, p, rng);
-            }
-        }
         let n = match &batch.sequence {
             Some(s) if Self::RECURRENT => s.num_envs,
             _ => batch.len(),
         };
+        let fused = match p.update.resolve(Self::RECURRENT) {
+            UpdateKind::Fused => self.take_fused(),
+            _ => None,
+        };
+        if let Some(mut fused) = fused {
+            // The parameters copied out of the `burn` modules once, every minibatch step
+            // taken on them, the result copied back.
+            let (lr, train_actor, parallel) =
+                (&mut self.learning_rate, self.train_actor, self.parallel);
+            let stats = epochs(n, p, rng, |mb| {
+                fused.train_minibatch(batch, mb, p, lr, train_actor, parallel)
+            });
+            self.put_fused(fused);
+            return UpdateStats {
+                learning_rate: self.learning_rate,
+                ..stats
+            };
+        }
         let stats = epochs(n, p, rng, |mb| self.train_minibatch(batch, mb, p));
         UpdateStats {
             learning_rate: self.learning_rate,
             ..stats
         }
+    }
+
+    /// [`Learner::train_minibatch`] in the fused update (copying the parameters and Adam's
+    /// state in and out around the one step: for tests and benchmarks; [`Learner::update`]
+    /// copies once per update); `burn`'s step for networks the fused update does not run.
+    pub fn train_minibatch_fused(
+        &mut self,
+        b: &Batch,
+        idx: &[usize],
+        p: &PpoConfig,
+    ) -> UpdateStats {
+        let Some(mut fused) = self.take_fused() else {
+            return self.train_minibatch(b, idx, p);
+        };
+        let s = fused.train_minibatch(
+            b,
+            idx,
+            p,
+            &mut self.learning_rate,
+            self.train_actor,
+            self.parallel,
+        );
+        self.put_fused(fused);
+        s
     }
 
     /// One minibatch: actor and critic passes (on two threads when `parallel`), the
@@ -369,48 +444,6 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             learning_rate: lr,
             skipped: 0,
         }
-    }
-}
-
-impl Learner<Actor, Critic> {
-    /// [`Learner::update`] in the fused update: the parameters copied out of the `burn`
-    /// modules once, every minibatch step taken on them, the result copied back.
-    fn update_fused(&mut self, batch: &Batch, p: &PpoConfig, rng: &mut ChaCha8Rng) -> UpdateStats {
-        let mut fused = FusedLearner::new(&self.actor, &self.critic, self.fused_optim.take());
-        let (lr, train_actor, parallel) =
-            (&mut self.learning_rate, self.train_actor, self.parallel);
-        let stats = epochs(batch.len(), p, rng, |mb| {
-            fused.train_minibatch(batch, mb, p, lr, train_actor, parallel)
-        });
-        fused.write_to(&mut self.actor, &mut self.critic);
-        self.fused_optim = Some(fused.into_optim());
-        UpdateStats {
-            learning_rate: self.learning_rate,
-            ..stats
-        }
-    }
-
-    /// [`Learner::train_minibatch`] in the fused update (copying the parameters and Adam's
-    /// state in and out around the one step: for tests and benchmarks; [`Learner::update`]
-    /// copies once per update).
-    pub fn train_minibatch_fused(
-        &mut self,
-        b: &Batch,
-        idx: &[usize],
-        p: &PpoConfig,
-    ) -> UpdateStats {
-        let mut fused = FusedLearner::new(&self.actor, &self.critic, self.fused_optim.take());
-        let s = fused.train_minibatch(
-            b,
-            idx,
-            p,
-            &mut self.learning_rate,
-            self.train_actor,
-            self.parallel,
-        );
-        fused.write_to(&mut self.actor, &mut self.critic);
-        self.fused_optim = Some(fused.into_optim());
-        s
     }
 }
 

@@ -359,8 +359,7 @@ impl RunDir {
         let fused = dir.join(FUSED_ADAM);
         if !fused.exists()
             && state.iteration > 0
-            && !arch.is_recurrent()
-            && config.ppo.update == crate::config::UpdateKind::Fused
+            && config.ppo.update.resolve(arch.is_recurrent()) == crate::config::UpdateKind::Fused
         {
             eprintln!(
                 "note: {} has no {FUSED_ADAM} (written by the burn update): the fused update starts Adam afresh",

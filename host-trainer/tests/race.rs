@@ -244,6 +244,7 @@ fn teacher_warm_start() -> host_trainer::config::WarmStart {
         critic_iterations: 0,
         quantization_aware: false,
         keep_best_round: false,
+        clamp_labels: false,
         refine: Vec::new(),
     }
 }

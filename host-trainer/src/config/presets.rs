@@ -136,7 +136,7 @@ impl Default for PpoConfig {
             critic_learning_rate: None,
             init_std: 1.0,
             init_hover: false,
-            update: UpdateKind::Fused,
+            update: UpdateKind::Auto,
         }
     }
 }
@@ -163,6 +163,7 @@ impl Default for WarmStart {
             critic_iterations: 30,
             quantization_aware: false,
             keep_best_round: false,
+            clamp_labels: false,
             refine: Vec::new(),
         }
     }

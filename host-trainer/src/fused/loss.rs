@@ -2,7 +2,7 @@
 //! Gaussian log-likelihood, entropy bonus and KL; the critic's clipped value loss.
 
 use super::net::Side;
-use crate::batch::{Batch, LN_2PI};
+use crate::batch::{Batch, LN_2PI, Minibatch};
 use crate::config::PpoConfig;
 use firmware_core::nn::ACTION_DIM;
 
@@ -17,20 +17,21 @@ pub(super) struct ActorStats {
 
 /// The actor's pass: clipped surrogate, entropy bonus, KL before the step; gradients into
 /// `side.grad` (log σ's last).
-pub(super) fn actor_pass(side: &mut Side, b: &Batch, idx: &[usize], p: &PpoConfig) -> ActorStats {
+pub(super) fn actor_pass(side: &mut Side, b: &Batch, mb: &Minibatch, p: &PpoConfig) -> ActorStats {
+    let samples = mb.samples.len().max(1);
     let ls_at = side.net.mlp_len();
     let log_std: [f32; ACTION_DIM] = core::array::from_fn(|k| side.net.params[ls_at + k]);
     let inv_std = log_std.map(|l| (-l).exp());
     let std_now = log_std.map(f32::exp);
     let sum_log_std: f32 = log_std.iter().sum();
     let norm_const = 0.5 * LN_2PI * ACTION_DIM as f32;
-    let inv_n = 1.0 / idx.len().max(1) as f32;
+    let inv_n = 1.0 / samples as f32;
     let (lo, hi) = (1.0 - p.clip, 1.0 + p.clip);
     let mut kl = 0.0f64;
     let mut surrogate = 0.0f64;
     let mut clipped_count = 0usize;
     let mut d_log_std = [0.0f64; ACTION_DIM];
-    side.pass(b, idx, |rows, mean, d_mean| {
+    side.pass(b, mb, |rows, mean, d_mean| {
         for ((&i, mu), dmu) in rows
             .iter()
             .zip(mean.chunks_exact(ACTION_DIM))
@@ -69,7 +70,7 @@ pub(super) fn actor_pass(side: &mut Side, b: &Batch, idx: &[usize], p: &PpoConfi
     for (g, d) in side.grad[ls_at..].iter_mut().zip(d_log_std) {
         *g = d as f32 - p.entropy_coef;
     }
-    let n = idx.len().max(1) as f64;
+    let n = samples as f64;
     ActorStats {
         surrogate: surrogate / n,
         entropy: f64::from(sum_log_std + 0.5 * (1.0 + LN_2PI) * ACTION_DIM as f32),
@@ -80,10 +81,11 @@ pub(super) fn actor_pass(side: &mut Side, b: &Batch, idx: &[usize], p: &PpoConfi
 
 /// The critic's pass: the clipped value loss (before its coefficient), gradients of
 /// `value_coef ×` it into `side.grad`.
-pub(super) fn critic_pass(side: &mut Side, b: &Batch, idx: &[usize], p: &PpoConfig) -> f64 {
-    let scale = p.value_coef / idx.len().max(1) as f32;
+pub(super) fn critic_pass(side: &mut Side, b: &Batch, mb: &Minibatch, p: &PpoConfig) -> f64 {
+    let samples = mb.samples.len().max(1);
+    let scale = p.value_coef / samples as f32;
     let mut loss = 0.0f64;
-    side.pass(b, idx, |rows, v, dv| {
+    side.pass(b, mb, |rows, v, dv| {
         for ((&i, &v), dv) in rows.iter().zip(v).zip(dv) {
             let (old, ret) = (b.old_values[i], b.returns[i]);
             let delta = v - old;
@@ -99,7 +101,7 @@ pub(super) fn critic_pass(side: &mut Side, b: &Batch, idx: &[usize], p: &PpoConf
             };
         }
     });
-    loss / idx.len().max(1) as f64
+    loss / samples as f64
 }
 
 pub(super) fn squared(v: &[f32]) -> f64 {

@@ -1,41 +1,50 @@
-//! The PPO minibatch step of the feed-forward actor and critic (rows A-D) written out by
-//! hand on the CPU: the same math as [`crate::ppo`]'s `burn` passes (forward, clipped
-//! surrogate with the Gaussian log-likelihood of a log-parameterised σ, entropy bonus,
-//! clipped value loss, KL(π_old ‖ π), backward, the global gradient-norm clip and Adam as
-//! [`crate::ppo::adam`] configures it), without a graph: parameters, gradients and Adam's
-//! moments are flat `f32` vectors, activations live in buffers allocated once, the matrix
-//! products are `matrixmultiply`'s `sgemm` (AVX-512/AVX2 FMA kernels chosen at run time).
+//! The PPO minibatch step of the actor and critic written out by hand on the CPU, for the
+//! feed-forward rows (A-D) and the recurrent ones (E-G): the same math as [`crate::ppo`]'s
+//! `burn` passes (forward, clipped surrogate with the Gaussian log-likelihood of a
+//! log-parameterised σ, entropy bonus, clipped value loss, KL(π_old ‖ π), backward, the
+//! global gradient-norm clip and Adam as [`crate::ppo::adam`] configures it), without a
+//! graph: parameters, gradients and Adam's moments are flat `f32` vectors, activations live
+//! in buffers allocated once, the matrix products are `matrixmultiply`'s `sgemm`
+//! (AVX-512/AVX2 FMA kernels chosen at run time).
 //!
-//! **Layout.** A network's parameters are flat in `burn`'s visiting order: per layer the
-//! weight `[in, out]` row-major (`burn`'s `Linear` layout) then the bias, and for the actor
-//! log σ last. [`crate::grads::flatten_gradients`] gives `burn`'s gradients in the same
-//! order, which is what the parity tests (`host-trainer/tests/fused.rs`) compare.
+//! **Layout.** A network's parameters are flat in `burn`'s visiting order: for a recurrent
+//! network first per LSTM layer `weight_ih` `[in, 4H]`, `weight_hh` `[H, 4H]` and the bias;
+//! then per MLP layer the weight `[in, out]` row-major (`burn`'s `Linear` layout) then the
+//! bias, and for the actor log σ last. [`crate::grads::flatten_gradients`] gives `burn`'s
+//! gradients in the same order, which is what the parity tests
+//! (`host-trainer/tests/fused.rs`, `fused_recurrent.rs`) compare.
 //!
-//! **Chunks.** A minibatch runs in chunks of [`CHUNK`] samples: each chunk's forward pass,
-//! loss head and backward pass, the weight gradients accumulated over the chunks. Every
-//! per-sample term of the loss depends on that sample only (the means divide by the
-//! minibatch size), so this is the minibatch's gradient, with activations that stay in
-//! cache.
+//! **Chunks.** A feed-forward minibatch runs in chunks of [`CHUNK`] samples: each chunk's
+//! forward pass, loss head and backward pass, the weight gradients accumulated over the
+//! chunks. Every per-sample term of the loss depends on that sample only (the means divide
+//! by the minibatch size), so this is the minibatch's gradient, with activations that stay
+//! in cache. A recurrent minibatch (whole env windows) runs its LSTM layers over the whole
+//! window first (`lstm`: time-major, one GEMM per step for all envs), the head and the
+//! loss in chunks as above, then backpropagation through time.
 //!
 //! **Threads.** As in the `burn` path, the actor's and the critic's passes run on two
 //! threads; the gradients are clipped together by their global norm, then each network
 //! takes its Adam step.
 //!
-//! The `burn` modules stay the networks of record: [`FusedLearner::new`] copies their
-//! parameters in, [`FusedLearner::write_to`] copies them back, so checkpoints, export,
-//! evaluation and the guard see `burn` modules as before. Adam's moments live in
-//! [`FusedOptim`], which the learner keeps between updates and the checkpoint saves.
+//! The `burn` modules stay the networks of record: [`FusedLearner::new`] and
+//! [`FusedLearner::recurrent`] copy their parameters in, [`FusedLearner::write_to`] copies
+//! them back, so checkpoints, export, evaluation and the guard see `burn` modules as
+//! before. Adam's moments live in [`FusedOptim`], which the learner keeps between updates
+//! and the checkpoint saves.
 
 mod kernels;
 mod loss;
+mod lstm;
 mod net;
 
-use crate::batch::Batch;
+use crate::batch::{Batch, Minibatch};
 use crate::config::PpoConfig;
 use crate::model::{Actor, Critic};
+use crate::recurrent::{LstmNet, RecurrentActor, RecurrentCritic};
 use crate::update::{UpdateStats, adapt_learning_rate};
 use burn::module::Module;
 use loss::{actor_pass, critic_pass, squared};
+use lstm::{LstmLayout, Recurrent, Role};
 use net::{FlatNet, Overwrite, Side, mlp_widths};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use std::collections::HashMap;
@@ -167,7 +176,21 @@ impl FusedOptim {
     }
 }
 
-/// The feed-forward actor and critic as the fused update runs them.
+/// What PPO's batch needs of the networks over a whole rollout.
+#[derive(Clone, Debug, Default)]
+pub struct RolloutOutputs {
+    /// The actor's means, one row per sample.
+    pub mean: Vec<f32>,
+    /// The critic's values, one per sample.
+    pub values: Vec<f32>,
+    /// The critic's values of the observations after the window, one per env.
+    pub last_values: Vec<f32>,
+    /// Recurrent: the critic's states to start the next window from
+    /// ([`crate::batch::Sequences::critic_next`]); empty for feed-forward networks.
+    pub critic_next: Vec<f32>,
+}
+
+/// The actor and critic as the fused update runs them (feed-forward or recurrent).
 #[derive(Clone, Debug)]
 pub struct FusedLearner {
     actor: Side,
@@ -175,18 +198,31 @@ pub struct FusedLearner {
 }
 
 impl FusedLearner {
-    /// The networks' parameters copied from `actor` and `critic`, Adam's moments from
-    /// `optim` (fresh where absent or of another shape).
+    /// The feed-forward networks' parameters copied from `actor` and `critic`, Adam's
+    /// moments from `optim` (fresh where absent or of another shape).
     pub fn new(actor: &Actor, critic: &Critic, optim: Option<FusedOptim>) -> Self {
         let (oa, oc) = optim.map_or((None, None), |o| (Some(o.actor), Some(o.critic)));
         Self {
-            actor: Side::new(FlatNet::of(actor, mlp_widths(&actor.mlp)), oa),
-            critic: Side::new(FlatNet::of(critic, mlp_widths(&critic.mlp)), oc),
+            actor: Side::new(FlatNet::of(actor, mlp_widths(&actor.mlp), 0), oa, None),
+            critic: Side::new(FlatNet::of(critic, mlp_widths(&critic.mlp), 0), oc, None),
+        }
+    }
+
+    /// [`FusedLearner::new`] for the recurrent networks (rows E-G).
+    pub fn recurrent(
+        actor: &RecurrentActor,
+        critic: &RecurrentCritic,
+        optim: Option<FusedOptim>,
+    ) -> Self {
+        let (oa, oc) = optim.map_or((None, None), |o| (Some(o.actor), Some(o.critic)));
+        Self {
+            actor: recurrent_side(actor, &actor.net, oa, Role::Actor),
+            critic: recurrent_side(critic, &critic.net, oc, Role::Critic),
         }
     }
 
     /// Copies the parameters back into `actor` and `critic` (ids kept).
-    pub fn write_to(&self, actor: &mut Actor, critic: &mut Critic) {
+    pub fn write_to<A: Module, C: Module>(&self, actor: &mut A, critic: &mut C) {
         fn write<'a>(values: &'a [f32]) -> Overwrite<'a> {
             Overwrite { values, at: 0 }
         }
@@ -210,9 +246,27 @@ impl FusedLearner {
         }
     }
 
+    /// True for the recurrent networks.
+    pub fn is_recurrent(&self) -> bool {
+        self.actor.recurrent.is_some()
+    }
+
+    /// The minibatch of `idx`: its samples (feed-forward networks) or its envs' whole
+    /// windows (recurrent ones).
+    fn minibatch(&self, b: &Batch, idx: &[usize]) -> Minibatch {
+        if self.is_recurrent() {
+            Minibatch::of_envs(b, idx)
+        } else {
+            Minibatch {
+                samples: idx.to_vec(),
+                envs: Vec::new(),
+            }
+        }
+    }
+
     /// The actor's means for every row of `obs`, the critic's values for them and for every
     /// row of `last_obs` (the observations after the window): what PPO's batch needs, the
-    /// two networks on two threads.
+    /// two networks on two threads (feed-forward networks).
     pub fn rollout_outputs(
         &mut self,
         obs: &[f32],
@@ -229,12 +283,33 @@ impl FusedLearner {
         })
     }
 
+    /// [`FusedLearner::rollout_outputs`] for the recurrent networks over `b`'s windows:
+    /// the actor's means, the critic's values, its values for `last_obs` and its states to
+    /// start the next window from.
+    pub fn window_outputs(&mut self, b: &Batch, last_obs: &[f32]) -> RolloutOutputs {
+        let (actor, critic) = (&mut self.actor, &mut self.critic);
+        std::thread::scope(|s| {
+            let critic_job = s.spawn(|| critic.window_outputs(b, Some(last_obs)));
+            let (mean, _, _) = actor.window_outputs(b, None);
+            let (values, last_values, critic_next) = critic_job
+                .join()
+                .unwrap_or_else(|e| std::panic::resume_unwind(e));
+            RolloutOutputs {
+                mean,
+                values,
+                last_values,
+                critic_next,
+            }
+        })
+    }
+
     /// The gradients of the actor's loss (surrogate − entropy bonus) and of the critic's
     /// (`value_coef` × value loss) on the samples `idx` of `b`, flat in `burn`'s order (for
     /// the parity tests; no step is taken).
     pub fn gradients(&mut self, b: &Batch, idx: &[usize], p: &PpoConfig) -> (Vec<f32>, Vec<f32>) {
-        actor_pass(&mut self.actor, b, idx, p);
-        critic_pass(&mut self.critic, b, idx, p);
+        let mb = self.minibatch(b, idx);
+        actor_pass(&mut self.actor, b, &mb, p);
+        critic_pass(&mut self.critic, b, &mb, p);
         (self.actor.grad.clone(), self.critic.grad.clone())
     }
 
@@ -257,8 +332,9 @@ impl FusedLearner {
             ..UpdateStats::default()
         };
         let max = f64::from(p.max_grad_norm);
+        let mb = &self.minibatch(b, idx);
         if !train_actor {
-            let value_loss = critic_pass(&mut self.critic, b, idx, p);
+            let value_loss = critic_pass(&mut self.critic, b, mb, p);
             let norm = squared(&self.critic.grad).sqrt();
             if !(norm.is_finite() && value_loss.is_finite()) {
                 return skipped(*learning_rate);
@@ -282,15 +358,15 @@ impl FusedLearner {
         let (actor, critic) = (&mut self.actor, &mut self.critic);
         let (a, value_loss) = if parallel {
             std::thread::scope(|s| {
-                let critic_job = s.spawn(|| critic_pass(critic, b, idx, p));
-                let a = actor_pass(actor, b, idx, p);
+                let critic_job = s.spawn(|| critic_pass(critic, b, mb, p));
+                let a = actor_pass(actor, b, mb, p);
                 let c = critic_job
                     .join()
                     .unwrap_or_else(|e| std::panic::resume_unwind(e));
                 (a, c)
             })
         } else {
-            (actor_pass(actor, b, idx, p), critic_pass(critic, b, idx, p))
+            (actor_pass(actor, b, mb, p), critic_pass(critic, b, mb, p))
         };
         let norm = (squared(&actor.grad) + squared(&critic.grad)).sqrt();
         if !(norm.is_finite()
@@ -330,6 +406,19 @@ impl FusedLearner {
             skipped: 0,
         }
     }
+}
+
+/// The fused side of `module`, whose LSTM layers and head are `net`.
+fn recurrent_side<M: Module>(
+    module: &M,
+    net: &LstmNet,
+    adam: Option<AdamMoments>,
+    role: Role,
+) -> Side {
+    let input = net.lstm.first().map_or(0, |l| l.weight_ih.val().dims()[0]);
+    let layout = LstmLayout::new(input, net.hidden(), net.lstm.len());
+    let flat = FlatNet::of(module, mlp_widths(&net.head), layout.len());
+    Side::new(flat, adam, Some(Recurrent::new(layout, role)))
 }
 
 #[cfg(test)]

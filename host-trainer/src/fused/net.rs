@@ -2,8 +2,9 @@
 //! per-thread activations of a chunk, and the chunked forward and backward passes.
 
 use super::kernels::{gemm, tanh_backward, tanh_in_place};
+use super::lstm::Recurrent;
 use super::{AdamMoments, CHUNK};
-use crate::batch::Batch;
+use crate::batch::{Batch, Minibatch};
 use crate::model::values;
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
 use burn::tensor::{Tensor, TensorData};
@@ -20,10 +21,11 @@ pub(super) struct FlatNet {
 }
 
 impl FlatNet {
-    /// The parameters of `module` (an actor or a critic) whose MLP has layer widths `sizes`.
-    pub(super) fn of<M: Module>(module: &M, sizes: Vec<usize>) -> Self {
+    /// The parameters of `module` (an actor or a critic) whose MLP has layer widths `sizes`
+    /// and starts at parameter `start` (after the LSTM layers of a recurrent network).
+    pub(super) fn of<M: Module>(module: &M, sizes: Vec<usize>, start: usize) -> Self {
         let mut offsets = Vec::new();
-        let mut at = 0;
+        let mut at = start;
         for w in sizes.windows(2) {
             offsets.push((at, at + w[0] * w[1]));
             at += w[0] * w[1] + w[1];
@@ -120,14 +122,25 @@ impl Workspace {
 /// One network of the fused update: its parameters, gradients, Adam state and buffers.
 #[derive(Clone, Debug)]
 pub(super) struct Side {
+    /// The parameters, with the MLP's layout (the head of a recurrent network).
     pub(super) net: FlatNet,
     pub(super) grad: Vec<f32>,
     pub(super) adam: AdamMoments,
     pub(super) ws: Workspace,
+    /// A recurrent network's LSTM layers (before the MLP in `net.params`).
+    pub(super) recurrent: Option<Recurrent>,
 }
 
+/// Envs per group when a whole rollout's windows run forward ([`Side::window_outputs`]): the
+/// tape of a group stays a few MB.
+const ENV_GROUP: usize = 64;
+
 impl Side {
-    pub(super) fn new(net: FlatNet, adam: Option<AdamMoments>) -> Self {
+    pub(super) fn new(
+        net: FlatNet,
+        adam: Option<AdamMoments>,
+        recurrent: Option<Recurrent>,
+    ) -> Self {
         let n = net.params.len();
         let adam = adam
             .filter(|a| a.moment_1.len() == n && a.moment_2.len() == n)
@@ -137,80 +150,196 @@ impl Side {
             ws: Workspace::new(&net.sizes),
             net,
             adam,
+            recurrent,
         }
     }
 
+    /// A recurrent network's outputs for every sample of `b` (its windows from the stored
+    /// states); with `last_obs` (the observations after the window) also the outputs for
+    /// those and the states to start the next window from (after the last step, zeroed
+    /// where the episode ended there), else both empty. Empty for a feed-forward network.
+    pub(super) fn window_outputs(
+        &mut self,
+        b: &Batch,
+        last_obs: Option<&[f32]>,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let Self {
+            net, ws, recurrent, ..
+        } = self;
+        let (Some(rec), Some(seq)) = (recurrent, &b.sequence) else {
+            return (Vec::new(), Vec::new(), Vec::new());
+        };
+        let (envs, out, d) = (seq.num_envs, net.sizes[net.layers()], b.obs_dim);
+        let width = rec.layout.state_width();
+        let mut y = vec![0.0; b.obs.len() / d.max(1) * out];
+        let (mut last, mut next) = match last_obs {
+            Some(_) => (vec![0.0; envs * out], vec![0.0; envs * width]),
+            None => (Vec::new(), Vec::new()),
+        };
+        let mut state = Vec::new();
+        let all: Vec<usize> = (0..envs).collect();
+        for group in all.chunks(ENV_GROUP) {
+            let mb = Minibatch::of_envs(b, group);
+            rec.load_windows(b, &mb);
+            rec.tape.forward(&net.params, &rec.layout);
+            head_outputs(net, ws, rec.tape.top(), |row, v| {
+                let i = mb.samples[row];
+                y[i * out..(i + 1) * out].copy_from_slice(v);
+            });
+            let Some(last_obs) = last_obs else {
+                continue;
+            };
+            // One more step, on the observations after the window.
+            rec.tape.final_state(&rec.layout, &mut state);
+            let tape = &mut rec.tape;
+            tape.begin(&rec.layout, group.len(), 1);
+            for (j, &env) in group.iter().enumerate() {
+                let k = seq.last_keep[env];
+                tape.x.extend_from_slice(&last_obs[env * d..(env + 1) * d]);
+                tape.keep.push(k);
+                for (n, &s) in next[env * width..(env + 1) * width]
+                    .iter_mut()
+                    .zip(&state[j * width..(j + 1) * width])
+                {
+                    *n = s * k;
+                }
+            }
+            tape.init.extend_from_slice(&state);
+            tape.forward(&net.params, &rec.layout);
+            head_outputs(net, ws, tape.top(), |row, v| {
+                let env = group[row];
+                last[env * out..(env + 1) * out].copy_from_slice(v);
+            });
+        }
+        (y, last, next)
+    }
+
     /// The outputs for every row of `obs` (row-major, the network's input width), chunk by
-    /// chunk.
+    /// chunk (feed-forward networks).
     pub(super) fn outputs(&mut self, obs: &[f32]) -> Vec<f32> {
         let Self { net, ws, .. } = self;
         let (n_in, out) = (net.sizes[0], net.sizes[net.layers()]);
         let mut y = Vec::with_capacity(obs.len() / n_in * out);
-        for rows in obs.chunks(CHUNK * n_in) {
-            let m = rows.len() / n_in;
-            ws.x[..m * n_in].copy_from_slice(&rows[..m * n_in]);
-            forward(net, ws, m);
-            y.extend_from_slice(&ws.y[..m * out]);
-        }
+        head_outputs(net, ws, obs, |_, v| y.extend_from_slice(v));
         y
     }
 
-    /// Forward and backward over the samples `idx` of `b`, chunk by chunk: `head` gets a
-    /// chunk's sample indices and outputs `[m, out]` and writes d loss / d outputs. Leaves
-    /// the MLP's gradients in `grad` (the tail past the MLP is the caller's).
+    /// Forward and backward over the samples of `mb`, chunk by chunk: `head` gets a chunk's
+    /// sample indices and outputs `[m, out]` and writes d loss / d outputs. Leaves the
+    /// network's gradients in `grad` (the tail past the MLP is the caller's). A recurrent
+    /// network runs `mb`'s whole windows through its LSTM layers first and backpropagates
+    /// through time after the head.
     pub(super) fn pass(
         &mut self,
         b: &Batch,
-        idx: &[usize],
+        mb: &Minibatch,
         mut head: impl FnMut(&[usize], &[f32], &mut [f32]),
     ) {
-        let Self { net, grad, ws, .. } = self;
+        let Self {
+            net,
+            grad,
+            ws,
+            recurrent,
+            ..
+        } = self;
         grad.fill(0.0);
-        let sizes = &net.sizes;
-        let layers = net.layers();
-        let n_in = sizes[0];
-        let out = sizes[layers];
-        for rows in idx.chunks(CHUNK) {
-            let m = rows.len();
-            for (r, &i) in rows.iter().enumerate() {
-                ws.x[r * n_in..(r + 1) * n_in].copy_from_slice(&b.obs[i * n_in..(i + 1) * n_in]);
+        let out = net.sizes[net.layers()];
+        let n_in = net.sizes[0];
+        let Some(rec) = recurrent else {
+            for rows in mb.samples.chunks(CHUNK) {
+                let m = rows.len();
+                for (r, &i) in rows.iter().enumerate() {
+                    ws.x[r * n_in..(r + 1) * n_in]
+                        .copy_from_slice(&b.obs[i * n_in..(i + 1) * n_in]);
+                }
+                forward(net, ws, m);
+                head(rows, &ws.y[..m * out], &mut ws.d_a[..m * out]);
+                backward(net, ws, grad, m, false);
             }
+            return;
+        };
+        if !rec.load_windows(b, mb) {
+            return;
+        }
+        let Recurrent { layout, tape, .. } = rec;
+        tape.forward(&net.params, layout);
+        let hidden = layout.hidden;
+        let mut d_top = std::mem::take(&mut tape.d_top);
+        d_top.resize(tape.rows() * hidden, 0.0);
+        for (k, rows) in mb.samples.chunks(CHUNK).enumerate() {
+            let (m, at) = (rows.len(), k * CHUNK * hidden);
+            ws.x[..m * hidden].copy_from_slice(&tape.top()[at..at + m * hidden]);
             forward(net, ws, m);
-            // Loss head: d loss / d outputs into d_a.
             head(rows, &ws.y[..m * out], &mut ws.d_a[..m * out]);
-            // Backward.
-            for l in (0..layers).rev() {
-                let (fi, fo) = (sizes[l], sizes[l + 1]);
-                let (wo, bo) = net.offsets[l];
-                let d = &ws.d_a[..m * fo];
-                let gb = &mut grad[bo..bo + fo];
-                for row in d.chunks_exact(fo) {
-                    for (g, &x) in gb.iter_mut().zip(row) {
-                        *g += x;
-                    }
-                }
-                let input: &[f32] = if l == 0 { &ws.x } else { &ws.hidden[l - 1] };
-                // dW[in, out] += inputᵀ · d
-                gemm(
-                    fi,
-                    m,
-                    fo,
-                    &input[..m * fi],
-                    (1, fi),
-                    d,
-                    (fo, 1),
-                    1.0,
-                    &mut grad[wo..wo + fi * fo],
-                );
-                if l > 0 {
-                    // d_prev[m, in] = d · Wᵀ, then through tanh: × (1 − h²).
-                    let w = &net.params[wo..wo + fi * fo];
-                    let next = &mut ws.d_b[..m * fi];
-                    gemm(m, fo, fi, d, (fo, 1), w, (1, fo), 0.0, next);
-                    tanh_backward(next, &ws.hidden[l - 1][..m * fi]);
-                    std::mem::swap(&mut ws.d_a, &mut ws.d_b);
-                }
+            backward(net, ws, grad, m, true);
+            d_top[at..at + m * hidden].copy_from_slice(&ws.d_a[..m * hidden]);
+        }
+        tape.d_top = d_top;
+        tape.backward(&net.params, layout, grad);
+    }
+}
+
+/// The backward pass through `net` of the chunk last run by [`forward`] (`m` rows), from
+/// d loss / d outputs in `ws.d_a`: adds the weight gradients into `grad`; with `to_input`
+/// leaves d loss / d inputs in `ws.d_a` (`[m, in]`).
+pub(super) fn backward(
+    net: &FlatNet,
+    ws: &mut Workspace,
+    grad: &mut [f32],
+    m: usize,
+    to_input: bool,
+) {
+    let sizes = &net.sizes;
+    for l in (0..net.layers()).rev() {
+        let (fi, fo) = (sizes[l], sizes[l + 1]);
+        let (wo, bo) = net.offsets[l];
+        let d = &ws.d_a[..m * fo];
+        let gb = &mut grad[bo..bo + fo];
+        for row in d.chunks_exact(fo) {
+            for (g, &x) in gb.iter_mut().zip(row) {
+                *g += x;
             }
+        }
+        let input: &[f32] = if l == 0 { &ws.x } else { &ws.hidden[l - 1] };
+        // dW[in, out] += inputᵀ · d
+        gemm(
+            fi,
+            m,
+            fo,
+            &input[..m * fi],
+            (1, fi),
+            d,
+            (fo, 1),
+            1.0,
+            &mut grad[wo..wo + fi * fo],
+        );
+        if l > 0 || to_input {
+            // d_prev[m, in] = d · Wᵀ, then through tanh: × (1 − h²).
+            let w = &net.params[wo..wo + fi * fo];
+            let next = &mut ws.d_b[..m * fi];
+            gemm(m, fo, fi, d, (fo, 1), w, (1, fo), 0.0, next);
+            if l > 0 {
+                tanh_backward(next, &ws.hidden[l - 1][..m * fi]);
+            }
+            std::mem::swap(&mut ws.d_a, &mut ws.d_b);
+        }
+    }
+}
+
+/// The head (`net`) on every row of `input`, chunk by chunk: `put(row, outputs)`.
+fn head_outputs(
+    net: &FlatNet,
+    ws: &mut Workspace,
+    input: &[f32],
+    mut put: impl FnMut(usize, &[f32]),
+) {
+    let (n_in, out) = (net.sizes[0], net.sizes[net.layers()]);
+    for (k, rows) in input.chunks(CHUNK * n_in).enumerate() {
+        let m = rows.len() / n_in;
+        ws.x[..m * n_in].copy_from_slice(&rows[..m * n_in]);
+        forward(net, ws, m);
+        for (r, v) in ws.y[..m * out].chunks_exact(out).enumerate() {
+            put(k * CHUNK + r, v);
         }
     }
 }

@@ -235,11 +235,15 @@ impl Teacher {
         })
     }
 
-    /// The teacher's actions for every env of `env` now.
-    fn label(&self, env: &VecEnv, out: &mut [f32]) {
+    /// The teacher's actions for every env of `env` now, with `clamp` clamped to the
+    /// rotor-command range [-1, 1] (`warm_start.clamp_labels`).
+    fn label(&self, env: &VecEnv, out: &mut [f32], clamp: bool) {
         match self {
             Self::Baseline(b) => env.teacher_actions(b, out),
             Self::Blob { policy, spec } => env.policy_actions(policy, spec, out),
+        }
+        if clamp {
+            out.iter_mut().for_each(|a| *a = a.clamp(-1.0, 1.0));
         }
     }
 }
@@ -282,7 +286,7 @@ fn collect_round(
     let mut from_teacher = 0usize;
     for _ in 0..steps {
         let obs = env.observations();
-        teacher.label(env, &mut labels);
+        teacher.label(env, &mut labels, warm.clamp_labels);
         for e in 0..n {
             let out = &mut executed[e * ACTION_DIM..(e + 1) * ACTION_DIM];
             // The student steps every time, so its state follows the flight.
@@ -514,4 +518,43 @@ pub fn imitate_recurrent(
         data: Vec::new(),
     };
     dagger(actor, &mut fit, arch, config, warm, device, log)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `stage1.blob`'s means leave [-1, 1] in the race's states (which is why its students
+    /// clamp them): unclamped labels show it, clamped ones stay in range and agree with the
+    /// unclamped ones wherever those are in range.
+    #[test]
+    fn clamped_labels_are_the_commands_the_teacher_flies() {
+        let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+        let mut config = TrainConfig::parse(include_str!("../../configs/smoke_race.toml")).unwrap();
+        config.env.num_envs = 64;
+        if let Some(race) = config.env.race.as_mut() {
+            race.opponent = root.join("policies/stage1.blob");
+        }
+        let warm = WarmStart {
+            teacher_blob: Some(root.join("policies/stage1.blob").display().to_string()),
+            ..WarmStart::default()
+        };
+        let (teacher, mut env, _) = set_up(&config, &warm).unwrap();
+        let (mut raw, mut clamped) = (vec![0.0; 64 * ACTION_DIM], vec![0.0; 64 * ACTION_DIM]);
+        let mut outside = 0;
+        for _ in 0..50 {
+            teacher.label(&env, &mut raw, false);
+            teacher.label(&env, &mut clamped, true);
+            for (r, c) in raw.iter().zip(&clamped) {
+                assert!((-1.0..=1.0).contains(c));
+                if r.abs() > 1.0 {
+                    outside += 1;
+                } else {
+                    assert_eq!(r, c);
+                }
+            }
+            env.step(&clamped).unwrap();
+        }
+        assert!(outside > 0, "no label left [-1, 1]");
+    }
 }
