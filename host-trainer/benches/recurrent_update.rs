@@ -9,7 +9,11 @@
 //!   the same batch, the whole window and a quarter of the envs (a minibatch of a 256-env
 //!   run with 4 minibatches);
 //! - `prepare_256x100_{burn,fused}`: the batch's forward pass over the whole rollout (old
-//!   means, values, bootstrap, the critic's next states).
+//!   means, values, bootstrap, the critic's next states);
+//! - `sgemm_peak/1024_{one,two}_thread(s)`: what `matrixmultiply`'s sgemm, the fused
+//!   update's kernel, reaches on this machine at a large square size (throughput in FLOP:
+//!   `Gelem/s` reads GFLOP/s), one product or two on two threads at once (the update runs
+//!   the actor and the critic on two threads).
 //!
 //! `cargo bench -p host-trainer --bench recurrent_update`
 
@@ -88,5 +92,55 @@ fn update(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, update);
+/// `c = a · b` for square `n × n` row-major matrices.
+fn sgemm(n: usize, a: &[f32], b: &[f32], c: &mut [f32]) {
+    assert!(a.len() >= n * n && b.len() >= n * n && c.len() >= n * n);
+    // SAFETY: the assert keeps every n × n element inside the slices; `c` is exclusively
+    // borrowed and does not alias `a` or `b`.
+    unsafe {
+        matrixmultiply::sgemm(
+            n,
+            n,
+            n,
+            1.0,
+            a.as_ptr(),
+            n as isize,
+            1,
+            b.as_ptr(),
+            n as isize,
+            1,
+            0.0,
+            c.as_mut_ptr(),
+            n as isize,
+            1,
+        );
+    }
+}
+
+fn sgemm_peak(c: &mut Criterion) {
+    const N: usize = 1024;
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut m = || -> Vec<f32> { (0..N * N).map(|_| rng.random_range(-1.0..1.0)).collect() };
+    let (a, b) = (m(), m());
+    let (mut c1, mut c2) = (vec![0.0f32; N * N], vec![0.0f32; N * N]);
+    let flop = 2 * N * N * N;
+    let mut g = c.benchmark_group("sgemm_peak");
+    g.sample_size(20);
+    g.throughput(Throughput::Elements(flop as u64));
+    g.bench_function("1024_one_thread", |bench| {
+        bench.iter(|| sgemm(N, &a, &b, &mut c1))
+    });
+    g.throughput(Throughput::Elements(2 * flop as u64));
+    g.bench_function("1024_two_threads", |bench| {
+        bench.iter(|| {
+            std::thread::scope(|s| {
+                s.spawn(|| sgemm(N, &a, &b, &mut c2));
+                sgemm(N, &a, &b, &mut c1);
+            })
+        })
+    });
+    g.finish();
+}
+
+criterion_group!(benches, update, sgemm_peak);
 criterion_main!(benches);

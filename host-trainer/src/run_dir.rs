@@ -4,7 +4,9 @@
 //! - `config.toml`: the configuration the run used;
 //! - `metrics.jsonl`: one JSON object per iteration ([`IterationMetrics`]: reward terms,
 //!   success, crashes, losses, KL, learning rate, σ, speed) and, every `run.eval_every`
-//!   iterations, the referee's evaluation of the current policy (`eval_*` keys);
+//!   iterations, the referee's evaluation of the current policy (`eval_*` keys); appended
+//!   to, never rewritten (a resume cuts the lines past its checkpoint and keeps the rest
+//!   byte for byte);
 //! - `imitation.jsonl` and `warm_start.blob`: the warm start's rounds and its student;
 //! - `forked_from.json` (`--fork-from`): the parent run, iteration and config hash a fork
 //!   started from;
@@ -140,14 +142,43 @@ impl RunDir {
         write_atomically(&p, text.as_bytes()).map_err(io(&p))
     }
 
-    /// `metrics.jsonl` holding exactly `history`.
-    pub fn write_metrics(&self, history: &[IterationMetrics]) -> Result<(), TrainError> {
-        let mut text = String::new();
-        for m in history {
-            text.push_str(&metrics_line(m)?);
-            text.push('\n');
+    /// `metrics.jsonl` as a run starting from `history` (up to iteration `last`) finds it:
+    /// where the file exists (a resume) it is cut back to the lines of iterations up to
+    /// `last` (later lines belong to the interval the checkpoint lost, which the run
+    /// redoes); else it is created holding `history` (a fresh run's nothing, or the lines a
+    /// fork inherits). The file is only ever appended to or cut at a line's end, never
+    /// rewritten: the lines kept are the bytes first written.
+    pub fn start_metrics(&self, history: &[IterationMetrics], last: u32) -> Result<(), TrainError> {
+        let text = match std::fs::read_to_string(&self.metrics) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                let mut text = String::new();
+                for m in history {
+                    text.push_str(&metrics_line(m)?);
+                    text.push('\n');
+                }
+                return write_atomically(&self.metrics, text.as_bytes()).map_err(io(&self.metrics));
+            }
+            Err(e) => return Err(TrainError::Io(self.metrics.clone(), e)),
+        };
+        let mut keep = 0;
+        for line in text.split_inclusive('\n') {
+            let kept = line.ends_with('\n')
+                && serde_json::from_str::<IterationMetrics>(line)
+                    .is_ok_and(|m| m.iteration <= last);
+            if !kept {
+                break;
+            }
+            keep += line.len();
         }
-        write_atomically(&self.metrics, text.as_bytes()).map_err(io(&self.metrics))
+        let f = std::fs::OpenOptions::new()
+            .create(true)
+            .write(true)
+            .truncate(false)
+            .open(&self.metrics)
+            .map_err(io(&self.metrics))?;
+        f.set_len(keep as u64).map_err(io(&self.metrics))?;
+        f.sync_all().map_err(io(&self.metrics))
     }
 
     /// One more line of `metrics.jsonl`.

@@ -97,7 +97,7 @@ fn run_networks<A: Imitate, C: ValueNet>(
     let dir = RunDir::new(&options.out);
     let mut state = start::<A, C>(config, options, &dir)?;
     dir.write_config(config)?;
-    dir.write_metrics(&state.history)?;
+    dir.start_metrics(&state.history, state.iteration)?;
     let mut lp = Loop::new(config, &state)?;
     let total = config.run.iterations;
     let stop_at = options

@@ -80,7 +80,13 @@ fn a_killed_run_resumes_from_its_last_checkpoint() {
     assert!(e.contains("--resume"), "{e}");
 
     // Resume: from iteration 2 to the budget of 4, the torn iteration 3 redone.
+    let before = std::fs::read(b.join("metrics.jsonl")).unwrap();
     let s = run(&config, &options(&b, true, None)).unwrap();
+    // metrics.jsonl is appended to, never rewritten: the lines of iterations 1 and 2 are
+    // the bytes first written (the torn line of iteration 3 is cut).
+    let after = std::fs::read(b.join("metrics.jsonl")).unwrap();
+    let kept = before.len() - "{\"iteration\":3}\n".len();
+    assert_eq!(&after[..kept], &before[..kept]);
     assert_eq!(s.iterations, 4);
     let blob = s.blob.expect("a finished run exports its blob");
     assert!(blob.exists());

@@ -141,7 +141,11 @@ multiversion! {
         for ((((z, c_prev), c), tc), h) in rows {
             let (ifg, o) = z.split_at_mut(3 * hidden);
             let (i_f, g) = ifg.split_at_mut(2 * hidden);
-            for x in i_f.iter_mut().chain(o.iter_mut()) {
+            // Separate loops: a chained iterator does not vectorise.
+            for x in i_f.iter_mut() {
+                *x = sigmoid_approx(*x);
+            }
+            for x in o.iter_mut() {
                 *x = sigmoid_approx(*x);
             }
             for x in g.iter_mut() {
