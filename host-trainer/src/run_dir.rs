@@ -66,6 +66,12 @@ pub(crate) struct RunState<A = Actor, C = Critic> {
 /// What `checkpoints/iter_N/state.json` holds besides the networks.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 struct CheckpointState {
+    /// [`CHECKPOINT_FORMAT`] when written (absent: 0, before checksums).
+    #[serde(default)]
+    format: u32,
+    /// SHA-256 of every other file of the checkpoint, by name (format 1).
+    #[serde(default)]
+    files: std::collections::BTreeMap<String, String>,
     iteration: u32,
     samples: u64,
     wall_s: f64,
@@ -83,6 +89,9 @@ pub(crate) struct RunDir {
     latest: PathBuf,
     metrics: PathBuf,
 }
+
+/// The checkpoint format this build writes: 1 adds the files' checksums to `state.json`.
+const CHECKPOINT_FORMAT: u32 = 1;
 
 /// The fused update's Adam state in a checkpoint ([`crate::fused::FusedOptim`]), written
 /// once the learner has one.
@@ -265,7 +274,18 @@ impl RunDir {
             let p = dir.join(FUSED_ADAM);
             write_atomically(&p, &bytes).map_err(io(&p))?;
         }
+        // The files' checksums, read back from the disk (what a resume will read).
+        let mut files = std::collections::BTreeMap::new();
+        for f in CHECKPOINT_FILES.iter().chain([&FUSED_ADAM]) {
+            let p = dir.join(f);
+            if p.exists() {
+                let bytes = std::fs::read(&p).map_err(io(&p))?;
+                files.insert(f.to_string(), sitl::files::sha256_hex(&bytes));
+            }
+        }
         let state = CheckpointState {
+            format: CHECKPOINT_FORMAT,
+            files,
             iteration: s.iteration,
             samples: s.samples,
             wall_s: s.wall_s,
@@ -330,7 +350,10 @@ impl RunDir {
 
     /// The latest checkpoint's run state and the hash of the config it was written under
     /// (read from the one `state.json`, so a parent still writing checkpoints cannot pair
-    /// one checkpoint with the next one's hash).
+    /// one checkpoint with the next one's hash). A checkpoint that is corrupt (a checksum
+    /// that does not match, a file that does not load, non-finite weights or moments,
+    /// implausible counters) is reported and the previous one still on disk is used, said
+    /// loudly; a checkpoint of another config is refused, not skipped.
     fn load_latest<A: PolicyNet, C: ValueNet>(
         &self,
         config: &TrainConfig,
@@ -344,12 +367,54 @@ impl RunDir {
                 self.latest.display()
             ))
         })?;
-        let dir = self.checkpoints.join(name.trim());
-        let bad = |m: String| TrainError::Checkpoint(format!("{}: {m}", dir.display()));
-        let state: CheckpointState = serde_json::from_str(
-            &std::fs::read_to_string(dir.join("state.json")).map_err(io(&dir))?,
-        )
-        .map_err(|e| bad(format!("state.json: {e}")))?;
+        let latest = name.trim().to_string();
+        // The latest first, then the older ones still on disk, newest first.
+        let mut names: Vec<String> = std::fs::read_dir(&self.checkpoints)
+            .map_err(io(&self.checkpoints))?
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n.starts_with("iter_") && !n.ends_with(".tmp") && *n < latest)
+            .collect();
+        names.sort_by(|a, b| b.cmp(a));
+        names.insert(0, latest);
+        let mut first_failure = None;
+        for name in &names {
+            match self.load_dir(name, config, arch, device, any_config) {
+                Ok(loaded) => {
+                    if let Some(e) = &first_failure {
+                        eprintln!(
+                            "WARNING: the latest checkpoint is unusable ({e}); resuming from the previous one, {name}: the iterations after it are redone"
+                        );
+                    }
+                    return Ok(loaded);
+                }
+                Err(Unusable::Refused(e)) => return Err(e),
+                Err(Unusable::Corrupt(e)) => {
+                    eprintln!("checkpoint {name} is corrupt: {e}");
+                    first_failure.get_or_insert(e);
+                }
+            }
+        }
+        Err(first_failure.unwrap_or_else(|| TrainError::Checkpoint("no checkpoint".into())))
+    }
+
+    /// The run state of checkpoint `checkpoints/<name>` (see [`Self::load_latest`]).
+    fn load_dir<A: PolicyNet, C: ValueNet>(
+        &self,
+        name: &str,
+        config: &TrainConfig,
+        arch: &Architecture,
+        device: &Device,
+        any_config: bool,
+    ) -> Result<(RunState<A, C>, String), Unusable> {
+        let dir = self.checkpoints.join(name);
+        let bad = |m: String| {
+            Unusable::Corrupt(TrainError::Checkpoint(format!("{}: {m}", dir.display())))
+        };
+        let text = std::fs::read_to_string(dir.join("state.json"))
+            .map_err(|e| bad(format!("state.json: {e}")))?;
+        let state: CheckpointState =
+            serde_json::from_str(&text).map_err(|e| bad(format!("state.json: {e}")))?;
         let hash = format!("{:016x}", config.hash());
         if state.config_hash != hash && !any_config {
             // A changed budget is allowed: the run's own config.toml (when it is the one the
@@ -363,12 +428,54 @@ impl RunDir {
                     c.run.iterations, config.run.iterations
                 ),
                 _ => {
-                    return Err(bad(format!(
-                        "written by a run with config hash {}, this config hashes to {hash}; resume with the run's own config.toml (only run.iterations may change)",
+                    return Err(Unusable::Refused(TrainError::Checkpoint(format!(
+                        "{}: written by a run with config hash {}, this config hashes to {hash}; resume with the run's own config.toml (only run.iterations may change)",
+                        dir.display(),
                         state.config_hash
-                    )));
+                    ))));
                 }
             }
+        }
+        if state.format > CHECKPOINT_FORMAT {
+            return Err(Unusable::Refused(TrainError::Checkpoint(format!(
+                "{}: checkpoint format {} is newer than this build's {CHECKPOINT_FORMAT}",
+                dir.display(),
+                state.format
+            ))));
+        }
+        if state.format >= 1 {
+            for f in CHECKPOINT_FILES {
+                if !state.files.contains_key(f) {
+                    return Err(bad(format!("state.json has no checksum of {f}")));
+                }
+            }
+            for (f, want) in &state.files {
+                let p = dir.join(f);
+                let bytes = std::fs::read(&p).map_err(|e| bad(format!("{f}: {e}")))?;
+                if sitl::files::sha256_hex(&bytes) != *want {
+                    return Err(bad(format!("{f} does not match its checksum")));
+                }
+            }
+        } else {
+            eprintln!(
+                "note: {} predates checkpoint checksums (format 0): its files are not verified",
+                dir.display()
+            );
+        }
+        // A fork's parent may have had other batches; a resume's samples are its iterations'.
+        let samples_fit = any_config
+            || state.samples == u64::from(state.iteration) * config.samples_per_iteration() as u64;
+        let plausible = state.learning_rate.is_finite()
+            && state.learning_rate > 0.0
+            && state.wall_s.is_finite()
+            && state.wall_s >= 0.0
+            && (any_config || state.iteration <= config.run.iterations)
+            && samples_fit;
+        if !plausible {
+            return Err(bad(format!(
+                "state.json is implausible (iteration {}, samples {}, learning rate {}, wall-clock {} s)",
+                state.iteration, state.samples, state.learning_rate, state.wall_s
+            )));
         }
         let seed = config.run.seed;
         let mut rng = init_rng(seed);
@@ -378,6 +485,9 @@ impl RunDir {
         let critic = C::fresh(arch, &mut rng, device)
             .try_load_file(dir.join(CHECKPOINT_FILES[1]))
             .map_err(|e| bad(format!("critic.bpk: {e:?}")))?;
+        if !all_finite(&actor) || !all_finite(&critic) {
+            return Err(bad("non-finite weights".into()));
+        }
         let actor_optim = adam()
             .load(dir.join(CHECKPOINT_FILES[2]))
             .map_err(|e| bad(format!("actor_optim.bpk: {e:?}")))?;
@@ -398,16 +508,24 @@ impl RunDir {
             );
         }
         if fused.exists() {
-            let bytes = std::fs::read(&fused).map_err(io(&fused))?;
-            learner.fused_optim = Some(
-                FusedOptim::from_safetensors(&bytes)
-                    .map_err(|e| bad(format!("{FUSED_ADAM}: {e}")))?,
-            );
+            let bytes = std::fs::read(&fused).map_err(|e| bad(format!("{FUSED_ADAM}: {e}")))?;
+            let optim = FusedOptim::from_safetensors(&bytes)
+                .map_err(|e| bad(format!("{FUSED_ADAM}: {e}")))?;
+            let finite = [&optim.actor, &optim.critic]
+                .iter()
+                .all(|m| m.moment_1.iter().chain(&m.moment_2).all(|v| v.is_finite()));
+            if !finite {
+                return Err(bad(format!("{FUSED_ADAM}: non-finite moments")));
+            }
+            learner.fused_optim = Some(optim);
         }
         let noise_rng =
             restore_rng(seed, &state.noise_rng).ok_or_else(|| bad("noise_rng".into()))?;
         let shuffle_rng =
             restore_rng(seed, &state.shuffle_rng).ok_or_else(|| bad("shuffle_rng".into()))?;
+        let history = self
+            .read_metrics(state.iteration)
+            .map_err(Unusable::Refused)?;
         let run_state = RunState {
             learner,
             iteration: state.iteration,
@@ -415,10 +533,36 @@ impl RunDir {
             wall_s: state.wall_s,
             noise_rng,
             shuffle_rng,
-            history: self.read_metrics(state.iteration)?,
+            history,
         };
         Ok((run_state, state.config_hash))
     }
+}
+
+/// Why a checkpoint cannot be resumed from.
+enum Unusable {
+    /// Damaged: the previous checkpoint may be used instead.
+    Corrupt(TrainError),
+    /// Not this run's (another config, a newer format): nothing else is tried.
+    Refused(TrainError),
+}
+
+/// Every float parameter of `module` is finite.
+fn all_finite<M: burn::module::Module>(module: &M) -> bool {
+    struct Finite(bool);
+    impl burn::module::ModuleVisitor for Finite {
+        fn visit_float<const D: usize>(
+            &mut self,
+            param: &burn::module::Param<burn::tensor::Tensor<D>>,
+        ) {
+            self.0 &= crate::model::values(param.val())
+                .iter()
+                .all(|v| v.is_finite());
+        }
+    }
+    let mut v = Finite(true);
+    module.visit(&mut v);
+    v.0
 }
 
 /// One line of `metrics.jsonl`.

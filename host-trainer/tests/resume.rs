@@ -347,3 +347,60 @@ fn a_selection_exports_the_validations_best_across_a_resume() {
     assert!(close(validation.mean_lap_s, best.select_mean_lap_s));
     let _ = std::fs::remove_dir_all(out);
 }
+
+/// A corrupt latest checkpoint (a flipped byte in a network file, or a `state.json` whose
+/// counters were edited) is reported and the previous one is resumed from, the lost
+/// iterations redone; when no checkpoint is usable, the error says why.
+#[test]
+fn a_corrupt_checkpoint_falls_back_to_the_previous_one() {
+    let config = TrainConfig::parse(CONFIG).unwrap();
+    let device = Device::flex().autodiff();
+    let flip = |p: &Path| {
+        let mut bytes = std::fs::read(p).unwrap();
+        let i = bytes.len() / 2;
+        bytes[i] ^= 0x10;
+        std::fs::write(p, bytes).unwrap();
+    };
+    let edit = |p: &Path, from: &str, to: &str| {
+        let text = std::fs::read_to_string(p).unwrap();
+        assert!(text.contains(from), "{text}");
+        std::fs::write(p, text.replace(from, to)).unwrap();
+    };
+    for corruption in ["flipped byte", "iteration", "learning rate"] {
+        let d = tmp(&format!("corrupt_{}", corruption.replace(' ', "_")));
+        // Checkpoints at iterations 2 and 3 (the stop writes one).
+        run(&config, &options(&d, false, Some(3))).unwrap();
+        let latest = d.join("checkpoints").join("iter_000003");
+        match corruption {
+            "flipped byte" => flip(&latest.join("actor.bpk")),
+            "iteration" => edit(
+                &latest.join("state.json"),
+                "\"iteration\": 3",
+                "\"iteration\": 999999",
+            ),
+            _ => edit(
+                &latest.join("state.json"),
+                "\"learning_rate\": ",
+                "\"learning_rate\": -",
+            ),
+        }
+        let (it, _) = checkpoint_actor(&config, &d, &device).unwrap();
+        assert_eq!(it, 2, "{corruption}: the previous checkpoint is used");
+        let s = run(&config, &options(&d, true, None)).unwrap();
+        assert_eq!(s.iterations, 4);
+        let its: Vec<u32> = metrics(&d).iter().map(|m| m.iteration).collect();
+        assert_eq!(its, vec![1, 2, 3, 4], "{corruption}");
+        let _ = std::fs::remove_dir_all(&d);
+    }
+    // Both checkpoints damaged: nothing to fall back to.
+    let d = tmp("corrupt_both");
+    run(&config, &options(&d, false, Some(3))).unwrap();
+    for it in ["iter_000002", "iter_000003"] {
+        flip(&d.join("checkpoints").join(it).join("critic.bpk"));
+    }
+    let e = run(&config, &options(&d, true, None))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("critic.bpk does not match its checksum"), "{e}");
+    let _ = std::fs::remove_dir_all(&d);
+}
