@@ -11,7 +11,9 @@
 //! - `forked_from.json` (`--fork-from`): the parent run, iteration and config hash a fork
 //!   started from;
 //! - `checkpoints/iter_NNNNNN/` (networks and Adam states as burnpack files, the fused
-//!   update's Adam state as `fused_adam.safetensors` once it has one, `state.json`) and
+//!   update's Adam state as `fused_adam.safetensors` once it has one, `state.json` with the
+//!   counters, the generators, the format and every file's SHA-256; a corrupt latest
+//!   checkpoint is reported and the previous one used) and
 //!   `checkpoints/latest`, the name of the newest complete checkpoint, replaced atomically
 //!   after every file of the checkpoint is on disk: a kill at any moment leaves the previous
 //!   checkpoint usable, and `--resume` loses at most `run.checkpoint_every` iterations;
