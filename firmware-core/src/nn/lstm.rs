@@ -163,18 +163,18 @@ impl<'w, const IN: usize, const H: usize> LstmCell<'w, IN, H> {
         sigmoid_lanes(zf);
         tanh_lanes(zg);
         sigmoid_lanes(zo);
-        // c' = σ(f) c + σ(i) tanh(g), then h' = σ(o) tanh(c'), as `step` orders them.
-        for (((c, f), i), g) in state.c.iter_mut().zip(&*zf).zip(&*zi).zip(&*zg) {
-            for (((cl, fl), il), gl) in c.iter_mut().zip(f).zip(i).zip(g) {
-                *cl = *fl * *cl + *il * *gl;
-            }
+        // c' = σ(f) c + σ(i) tanh(g), then h' = σ(o) tanh(c'), as `step` orders them. One
+        // loop over the flattened `H × LANES` values: nested loops were vectorised across
+        // the units, with gathers.
+        let cells = state.c.as_flattened_mut().iter_mut().zip(zf.as_flattened());
+        for ((cl, fl), (il, gl)) in cells.zip(zi.as_flattened().iter().zip(zg.as_flattened())) {
+            *cl = *fl * *cl + *il * *gl;
         }
         let mut tc = state.c;
         tanh_lanes(&mut tc);
-        for ((h, o), t) in state.h.iter_mut().zip(&*zo).zip(&tc) {
-            for ((hl, ol), tl) in h.iter_mut().zip(o).zip(t) {
-                *hl = *ol * *tl;
-            }
+        let outs = state.h.as_flattened_mut().iter_mut().zip(zo.as_flattened());
+        for ((hl, ol), tl) in outs.zip(tc.as_flattened()) {
+            *hl = *ol * *tl;
         }
     }
 }
