@@ -261,6 +261,27 @@ fn the_stage2_student_is_its_configs_warm_start_and_races_as_recorded() {
     );
 }
 
+/// `policies/stage2_G_distil.blob` is `stage1.blob` distilled into row G's network, racing
+/// `stage1.blob` (issue [race]: the warm-start row): the warm start of the config in its
+/// directory (provenance: that config's hash, seed and name, 0 PPO iterations), labelled
+/// with the teacher's clamped commands, and it races `stage1.blob` exactly as its
+/// `eval.json` records.
+#[test]
+fn the_race_distillation_is_its_configs_warm_start_and_races_as_recorded() {
+    let (raw, config, iterations) =
+        shipped_blob("stage2_G_distil", "policies/stage2_G_distil/config.toml");
+    assert_eq!(iterations, 0, "the warm start, before any PPO iteration");
+    let warm = config.warm_start.expect("a warm start");
+    assert_eq!(warm.teacher_blob.as_deref(), Some("policies/stage1.blob"));
+    assert!(warm.clamp_labels);
+    races_as_recorded(
+        "stage2_G_distil",
+        &raw,
+        "policies/stage1.blob",
+        "stage2_G_distil",
+    );
+}
+
 /// `docs/runs/rslrl_stage1/policy.blob`, RSL-RL's actor on the shipped recipe (issue
 /// "learn", items 1 and 5; not a shipped policy): imported folded, as it was trained, and it
 /// flies the referee's time trial exactly as its `eval.json` records, the numbers
