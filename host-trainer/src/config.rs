@@ -129,7 +129,8 @@ pub struct WarmStart {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub student: Option<String>,
     /// DAgger rounds; the teacher's share of the executed actions falls linearly from 1 to
-    /// 0 over the first half.
+    /// 0 over the first half. 0 with a `student`: the student as given (refereed, then the
+    /// critic-only iterations).
     pub rounds: u32,
     /// Env-steps per env per round.
     pub steps_per_env: usize,

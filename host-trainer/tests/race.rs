@@ -431,3 +431,50 @@ fn keep_best_round_ends_the_warm_start_with_the_referees_best_round() {
     let _ = std::fs::remove_dir_all(&dir);
     let _ = std::fs::remove_dir_all(&plain_dir);
 }
+
+/// A warm start of 0 rounds from a student starts PPO from exactly the student (its blob
+/// is `warm_start.blob`, byte for byte the student's weights); 0 rounds without a student
+/// is refused.
+#[test]
+fn a_zero_round_warm_start_keeps_the_student() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let student = root.join("policies/stage2_C.blob");
+    let mut c = config();
+    c.run.row = 'C';
+    c.env.num_envs = 16;
+    c.ppo.steps_per_env = 20;
+    let mut warm = teacher_warm_start();
+    warm.student = Some(student.display().to_string());
+    warm.rounds = 0;
+    warm.critic_iterations = 1;
+    c.warm_start = Some(warm.clone());
+    let text = toml::to_string(&c).unwrap();
+    assert!(TrainConfig::parse(&text).is_ok(), "{text}");
+    let out = tmp("zero_rounds");
+    let _ = std::fs::remove_dir_all(&out);
+    run(
+        &c,
+        &RunOptions {
+            stop_after: Some(0),
+            ..options(out.clone())
+        },
+    )
+    .unwrap();
+    let weights = |raw: &[u8]| {
+        let bytes = AlignedBytes::new(raw);
+        let blob = Blob::parse(bytes.as_bytes()).unwrap();
+        blob.weights().unwrap().to_vec()
+    };
+    let kept = std::fs::read(out.join("warm_start.blob")).unwrap();
+    let given = std::fs::read(&student).unwrap();
+    assert_eq!(weights(&kept), weights(&given));
+    let _ = std::fs::remove_dir_all(&out);
+
+    warm.student = None;
+    c.warm_start = Some(warm);
+    let e = TrainConfig::parse(&toml::to_string(&c).unwrap()).unwrap_err();
+    assert!(
+        e.to_string().contains("rounds may be 0 with a student"),
+        "{e}"
+    );
+}

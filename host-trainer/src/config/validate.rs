@@ -117,7 +117,8 @@ fn env_and_race(c: &TrainConfig) -> Result<(), ConfigError> {
 /// The warm start and every refine stage.
 fn warm_start(c: &TrainConfig) -> Result<(), ConfigError> {
     for w in c.warm_start.iter().flat_map(WarmStart::stages) {
-        if w.rounds == 0
+        // No rounds: the student as given (refine stages have no student of their own).
+        if (w.rounds == 0 && w.student.is_none())
             || w.steps_per_env == 0
             || w.epochs == 0
             || w.minibatch == 0
@@ -125,7 +126,7 @@ fn warm_start(c: &TrainConfig) -> Result<(), ConfigError> {
         {
             return bad(
                 "warm_start.rounds, steps_per_env, epochs, minibatch and max_samples (and \
-                 every refine stage's) must be positive",
+                 every refine stage's) must be positive (rounds may be 0 with a student)",
             );
         }
         if !(w.learning_rate > 0.0 && w.teacher_cruise_mps > 0.0 && w.student_noise_std >= 0.0) {
