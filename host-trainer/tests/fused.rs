@@ -11,10 +11,13 @@ use host_trainer::config::{PpoConfig, UpdateKind};
 use host_trainer::fused::{AdamMoments, FusedLearner};
 use host_trainer::model::{Actor, Critic, values};
 use host_trainer::nets::{PolicyNet, ValueNet};
-use host_trainer::ppo::{Learner, UpdateStats, adam};
+use host_trainer::ppo::{Learner, adam};
 use host_trainer::rng::init_rng;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+
+mod fused_common;
+use fused_common::{assert_networks_close, assert_stats_close, flat, relative_error};
 
 fn learner(seed: u64) -> Learner {
     let device = Device::flex().autodiff();
@@ -83,29 +86,6 @@ fn batch(l: &Learner, n: usize, seed: u64) -> Batch {
     }
 }
 
-/// The largest `|a − b|` relative to `max |b|` over the vector.
-fn relative_error(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    let scale = b.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-12);
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs() / scale)
-        .fold(0.0, f32::max)
-}
-
-/// Every parameter's flat values (actor: layers then log σ; critic: layers).
-fn flat<M: Module>(m: &M) -> Vec<f32> {
-    struct Collect(Vec<f32>);
-    impl ModuleVisitor for Collect {
-        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-            self.0.extend(values(param.val()));
-        }
-    }
-    let mut c = Collect(Vec::new());
-    m.visit(&mut c);
-    c.0
-}
-
 /// The offsets of a flat 17→128→128→k MLP's tensors, with their names.
 fn tensors(out: usize, log_std: bool) -> Vec<(String, usize, usize)> {
     let mut v = Vec::new();
@@ -141,38 +121,6 @@ fn fused_gradients_equal_burns() {
             assert!(e < 1e-4, "{name} {t}: relative error {e}");
             assert!(burn[from..to].iter().any(|g| *g != 0.0), "{name} {t}: zero");
         }
-    }
-}
-
-fn assert_stats_close(a: &UpdateStats, b: &UpdateStats) {
-    let close = |x: f64, y: f64, what: &str| {
-        assert!(
-            (x - y).abs() <= 1e-5 * y.abs().max(1e-3),
-            "{what}: fused {x} burn {y}"
-        );
-    };
-    close(a.surrogate_loss, b.surrogate_loss, "surrogate");
-    close(a.value_loss, b.value_loss, "value loss");
-    close(a.entropy, b.entropy, "entropy");
-    close(a.kl, b.kl, "kl");
-    close(a.clip_fraction, b.clip_fraction, "clip fraction");
-    close(a.grad_norm, b.grad_norm, "grad norm");
-    assert_eq!(a.learning_rate, b.learning_rate);
-    assert_eq!(a.skipped, b.skipped);
-}
-
-/// Parameters after the same steps taken by both updates, compared.
-fn assert_networks_close(fused: &Learner, burn: &Learner, tol: f32) {
-    for (name, a, b) in [
-        ("actor", flat(&fused.actor), flat(&burn.actor)),
-        ("critic", flat(&fused.critic), flat(&burn.critic)),
-    ] {
-        let worst = a
-            .iter()
-            .zip(&b)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0f32, f32::max);
-        assert!(worst < tol, "{name}: largest difference {worst}");
     }
 }
 

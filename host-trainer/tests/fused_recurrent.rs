@@ -9,12 +9,15 @@ use host_trainer::batch::Batch;
 use host_trainer::config::{PpoConfig, UpdateKind};
 use host_trainer::fused::FusedLearner;
 use host_trainer::nets::{PolicyNet, ValueNet};
-use host_trainer::ppo::{RecurrentLearner, UpdateStats};
+use host_trainer::ppo::RecurrentLearner;
 use host_trainer::recurrent::{LstmState, RecurrentActor, RecurrentCritic};
 use host_trainer::rng::init_rng;
 use host_trainer::rollout::Rollout;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+
+mod fused_common;
+use fused_common::{assert_networks_close, assert_stats_close, flat, relative_error};
 
 const ROWS: [TableRow; 3] = [TableRow::E, TableRow::F, TableRow::G];
 
@@ -75,16 +78,6 @@ fn batch(l: &RecurrentLearner, r: &Rollout, seed: u64) -> Batch {
     b
 }
 
-/// The largest `|a − b|` relative to `max |b|`.
-fn relative_error(a: &[f32], b: &[f32]) -> f32 {
-    assert_eq!(a.len(), b.len());
-    let scale = b.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-12);
-    a.iter()
-        .zip(b)
-        .map(|(x, y)| (x - y).abs() / scale)
-        .fold(0.0, f32::max)
-}
-
 /// Per-tensor spans of a recurrent network's flat parameters in `burn`'s order.
 fn tensors(l: &RecurrentLearner, actor: bool) -> Vec<(String, usize, usize)> {
     let net = if actor { &l.actor.net } else { &l.critic.net };
@@ -141,51 +134,6 @@ fn fused_recurrent_gradients_equal_burns() {
             }
         }
     }
-}
-
-/// Every parameter of both networks (the flat `burn` order).
-fn flat(l: &RecurrentLearner) -> (Vec<f32>, Vec<f32>) {
-    use burn::module::{Module, ModuleVisitor, Param};
-    use burn::tensor::Tensor;
-    struct Collect(Vec<f32>);
-    impl ModuleVisitor for Collect {
-        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-            self.0.extend(host_trainer::model::values(param.val()));
-        }
-    }
-    let (mut a, mut c) = (Collect(Vec::new()), Collect(Vec::new()));
-    l.actor.visit(&mut a);
-    l.critic.visit(&mut c);
-    (a.0, c.0)
-}
-
-fn assert_networks_close(fused: &RecurrentLearner, burn: &RecurrentLearner, tol: f32) {
-    let ((fa, fc), (ba, bc)) = (flat(fused), flat(burn));
-    for (name, a, b) in [("actor", fa, ba), ("critic", fc, bc)] {
-        let worst = a
-            .iter()
-            .zip(&b)
-            .map(|(x, y)| (x - y).abs())
-            .fold(0.0f32, f32::max);
-        assert!(worst < tol, "{name}: largest difference {worst:e}");
-    }
-}
-
-fn assert_stats_close(a: &UpdateStats, b: &UpdateStats) {
-    let close = |x: f64, y: f64, what: &str| {
-        assert!(
-            (x - y).abs() <= 1e-5 * y.abs().max(1e-3),
-            "{what}: fused {x} burn {y}"
-        );
-    };
-    close(a.surrogate_loss, b.surrogate_loss, "surrogate");
-    close(a.value_loss, b.value_loss, "value loss");
-    close(a.entropy, b.entropy, "entropy");
-    close(a.kl, b.kl, "kl");
-    close(a.clip_fraction, b.clip_fraction, "clip fraction");
-    close(a.grad_norm, b.grad_norm, "grad norm");
-    assert_eq!(a.learning_rate, b.learning_rate);
-    assert_eq!(a.skipped, b.skipped);
 }
 
 /// `prepare` with the fused forward pass builds the batch `burn`'s builds: old means and
@@ -247,7 +195,7 @@ fn a_fused_recurrent_minibatch_step_equals_burns() {
         assert_eq!(sb.grad_norm > max_grad_norm.into(), max_grad_norm < 1.0);
         assert_stats_close(&sf, &sb);
         assert_networks_close(&fused, &burn, 1e-5);
-        assert_ne!(flat(&fused).0, flat(&learner(TableRow::G, 7)).0);
+        assert_ne!(flat(&fused.actor), flat(&learner(TableRow::G, 7).actor));
     }
 }
 

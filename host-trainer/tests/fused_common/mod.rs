@@ -1,0 +1,69 @@
+//! What the fused update's parity tests (`fused.rs`, `fused_recurrent.rs`) share: the
+//! error measure, the networks' flat parameters, and the comparisons of a step's statistics
+//! and of the networks after it.
+
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::tensor::Tensor;
+use host_trainer::model::values;
+use host_trainer::ppo::{Learner, UpdateStats};
+
+/// The largest `|a − b|` relative to `max |b|` over the vector.
+pub fn relative_error(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    let scale = b.iter().fold(0.0f32, |m, x| m.max(x.abs())).max(1e-12);
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs() / scale)
+        .fold(0.0, f32::max)
+}
+
+/// Every parameter's flat values in `burn`'s visiting order.
+pub fn flat<M: Module>(m: &M) -> Vec<f32> {
+    struct Collect(Vec<f32>);
+    impl ModuleVisitor for Collect {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            self.0.extend(values(param.val()));
+        }
+    }
+    let mut c = Collect(Vec::new());
+    m.visit(&mut c);
+    c.0
+}
+
+/// A fused step's statistics against `burn`'s: the same to 1e-5 (relative, or absolute
+/// below 1e-3), the same learning rate and skips.
+pub fn assert_stats_close(a: &UpdateStats, b: &UpdateStats) {
+    let close = |x: f64, y: f64, what: &str| {
+        assert!(
+            (x - y).abs() <= 1e-5 * y.abs().max(1e-3),
+            "{what}: fused {x} burn {y}"
+        );
+    };
+    close(a.surrogate_loss, b.surrogate_loss, "surrogate");
+    close(a.value_loss, b.value_loss, "value loss");
+    close(a.entropy, b.entropy, "entropy");
+    close(a.kl, b.kl, "kl");
+    close(a.clip_fraction, b.clip_fraction, "clip fraction");
+    close(a.grad_norm, b.grad_norm, "grad norm");
+    assert_eq!(a.learning_rate, b.learning_rate);
+    assert_eq!(a.skipped, b.skipped);
+}
+
+/// Parameters after the same steps taken by both updates: no value apart by `tol` or more.
+pub fn assert_networks_close<A: Module, C: Module>(
+    fused: &Learner<A, C>,
+    burn: &Learner<A, C>,
+    tol: f32,
+) {
+    for (name, a, b) in [
+        ("actor", flat(&fused.actor), flat(&burn.actor)),
+        ("critic", flat(&fused.critic), flat(&burn.critic)),
+    ] {
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < tol, "{name}: largest difference {worst:e}");
+    }
+}
