@@ -21,6 +21,7 @@ fn fly(raw: &[u8], spawn: SpawnMode, episodes: u32) -> Report {
         seconds: 45.0,
         seed: 0,
         spawn: Some(spawn),
+        perturbation: sitl::perturb::Perturbation::NONE,
     };
     report(&spec, None, &config)
 }

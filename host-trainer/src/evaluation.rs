@@ -33,6 +33,7 @@ pub fn referee_eval(blob: &[u8], preset: Preset, config: &TrainConfig) -> Option
         } else {
             SpawnMode::Stage1
         }),
+        perturbation: sitl::perturb::Perturbation::NONE,
     };
     Some(report(&spec, opponent.as_ref(), &eval))
 }
@@ -54,6 +55,7 @@ pub fn selection_eval(blob: &[u8], preset: Preset, select: &Selection) -> Option
         seconds: 45.0,
         seed: select.seed,
         spawn: Some(select.spawn),
+        perturbation: sitl::perturb::Perturbation::NONE,
     };
     Some(report(&spec, None, &eval))
 }

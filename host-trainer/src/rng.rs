@@ -2,7 +2,7 @@
 //! initialisation, action noise, minibatch order, the guard's test rollouts), so that a
 //! seed fixes a run and a checkpoint can store and restore each stream's position.
 
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 /// The generator of stream `stream` of `seed`.
@@ -18,12 +18,8 @@ pub fn init_rng(seed: u64) -> ChaCha8Rng {
     generator(seed, u64::MAX)
 }
 
-/// A standard normal sample (Box–Muller).
-pub fn normal(rng: &mut ChaCha8Rng) -> f32 {
-    let u1: f32 = rng.random_range(f32::EPSILON..1.0);
-    let u2: f32 = rng.random::<f32>();
-    (-2.0 * u1.ln()).sqrt() * (core::f32::consts::TAU * u2).cos()
-}
+/// A standard normal sample (Box–Muller): sitl's, which its perturbations draw too.
+pub use sitl::perturb::normal;
 
 /// A generator's position as text (`stream:word`), for a checkpoint's `state.json`.
 pub fn rng_state(r: &ChaCha8Rng) -> String {

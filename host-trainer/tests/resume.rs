@@ -332,6 +332,7 @@ fn a_selection_exports_the_validations_best_across_a_resume() {
             seconds: 45.0,
             seed: select.seed,
             spawn: Some(sitl::referee::SpawnMode::AlongTrack),
+            perturbation: sitl::perturb::Perturbation::NONE,
         },
     );
     // The same episodes; the means may be summed in another order (parallel episodes).

@@ -113,6 +113,7 @@ fn races_as_recorded(name: &str, raw: &[u8], opponent: &str, dir: &str) {
         seconds: recorded["episode_seconds"].as_f64().unwrap() as f32,
         seed: recorded["seed"].as_u64().unwrap(),
         spawn: None,
+        perturbation: sitl::perturb::Perturbation::NONE,
     };
     let r = report(&ego, Some(&opponent), &eval);
     println!("{name}: {}", r.table());
@@ -136,6 +137,7 @@ fn check(name: &str, config: &str, recorded_lap_s: f64) {
         seconds: 45.0,
         seed: 0,
         spawn: Some(SpawnMode::Stage1),
+        perturbation: sitl::perturb::Perturbation::NONE,
     };
     let r = report(&spec, None, &eval);
     println!("{}", r.table());
@@ -308,6 +310,7 @@ fn flies_as_recorded(name: &str, raw: &[u8], eval_json: &Path) -> (EvalConfig, s
         seconds: recorded["episode_seconds"].as_f64().unwrap() as f32,
         seed: recorded["seed"].as_u64().unwrap(),
         spawn: Some(SpawnMode::Stage1),
+        perturbation: sitl::perturb::Perturbation::NONE,
     };
     let r = report(&PilotSpec::from_blob(name, raw).unwrap(), None, &eval);
     println!("{name}: {}", r.table());

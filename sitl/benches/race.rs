@@ -51,6 +51,7 @@ fn eval_config(seed: u64) -> EvalConfig {
         seconds: SECONDS,
         seed,
         spawn: None,
+        perturbation: sitl::perturb::Perturbation::NONE,
     }
 }
 

@@ -2,6 +2,7 @@
 //! 95% intervals, printed for people and written as JSON for programs.
 
 use crate::dynamics::Preset;
+use crate::perturb::Perturbation;
 use crate::pilot::PilotSpec;
 use crate::referee::{CrashCounts, Episode, EpisodeConfig, EpisodeMetrics, SpawnMode, run_episode};
 use crate::stats::{ci95, mean};
@@ -23,6 +24,8 @@ pub struct EvalConfig {
     pub seed: u64,
     /// Spawn mode; `None` picks stage 2 for races and stage 1 for time trials.
     pub spawn: Option<SpawnMode>,
+    /// What perturbs the flights ([`Perturbation::NONE`]: the nominal flight).
+    pub perturbation: Perturbation,
 }
 
 impl EvalConfig {
@@ -41,6 +44,7 @@ impl EvalConfig {
             seconds: self.seconds,
             spawn: self.spawn_mode(race),
             seed: self.seed,
+            perturbation: self.perturbation,
         }
     }
 
@@ -116,6 +120,9 @@ pub struct Report {
     pub spawn: String,
     /// Seed of the spawn draws.
     pub seed: u64,
+    /// The perturbation flown (absent: none, the nominal flight).
+    #[serde(skip_serializing_if = "Perturbation::is_none")]
+    pub perturbation: Perturbation,
     /// Episodes flown.
     pub episodes: u32,
     /// Simulated seconds per episode.
@@ -180,6 +187,7 @@ impl Report {
             preset: config.preset.name.to_string(),
             spawn: config.spawn_mode(opponent.is_some()).name().to_string(),
             seed: config.seed,
+            perturbation: config.perturbation,
             episodes: episodes.len() as u32,
             episode_seconds: f64::from(config.seconds),
             sim_seconds: episodes.iter().map(|e| f64::from(e.sim_seconds)).sum(),
@@ -240,6 +248,9 @@ impl Report {
             self.episode_seconds,
             self.seed
         );
+        if !self.perturbation.is_none() {
+            out += &format!("perturbed: {}\n", self.perturbation.describe());
+        }
         let rows = [
             (
                 "success rate",

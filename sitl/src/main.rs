@@ -9,6 +9,10 @@
 //! - `sitl race [--ego X] [--opponent Y|none] [--episodes 20] [--seed 0] [--json F]
 //!   [--tlog race.tlog] [--plot race.svg] [--realtime] [--in-process] [--signing-key K]`:
 //!   the shipped policies raced over MAVLink in lockstep, each controller its own process.
+//! - `sitl robustness --ego <blob|baseline> [--opponent ...] [--episodes 20] [--json F]
+//!   [--markdown F]`: the pilot and its int8 copy under the standard perturbations.
+//! - `sitl eval ... --jitter[=SPEC] --perturb SPEC`: one eval perturbed
+//!   (docs/DESIGN.md "Perturbations").
 //! - `sitl fc --blob X --sysid N --port P [--signing-key K]`: one controller as a MAVLink
 //!   endpoint (what `race` starts).
 //!
@@ -47,6 +51,10 @@ enum Command {
     /// error on the observations of races the f32 policy flies, then both blobs' Table-1
     /// rows over the same seeded episodes.
     Int8Check(cli::int8::Int8CheckArgs),
+    /// Fly a pilot (f32 and its int8 conversion) under the standard perturbations: start
+    /// jitter, sensor noise, thrust, mass, inertia, motor lag, latency; print the table and
+    /// the largest level of each it survives (success >= 0.9).
+    Robustness(cli::robustness::RobustnessArgs),
 }
 
 fn main() -> ExitCode {
@@ -56,6 +64,7 @@ fn main() -> ExitCode {
         Command::Race(a) => cli::race::run(a),
         Command::Fc(a) => cli::fc::run(a).map(|()| ExitCode::SUCCESS),
         Command::Int8Check(a) => cli::int8::run(a),
+        Command::Robustness(a) => cli::robustness::run(a).map(|()| ExitCode::SUCCESS),
     };
     match result {
         Ok(code) => code,

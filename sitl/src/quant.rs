@@ -217,6 +217,7 @@ mod tests {
             seconds: 6.0,
             seed: 3,
             spawn: None,
+            perturbation: crate::perturb::Perturbation::NONE,
         }
     }
 

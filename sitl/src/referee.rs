@@ -16,7 +16,9 @@
 //! Gate passes and crashes come from [`World::judge`], i.e. firmware-core's gate test and
 //! crash rules; progress comes from firmware-core's [`Centerline`] and [`ArcLength`].
 
+use crate::dynamics::Preset;
 use crate::frames::NedState;
+use crate::perturb::{EpisodePerturbation, Perturbation};
 use crate::pilot::Pilot;
 use crate::world::{CrashCause, Drone, DroneStep, SpawnPoint, World};
 use firmware_core::math::Vec3;
@@ -471,8 +473,10 @@ pub struct EpisodeConfig {
     pub seconds: f32,
     /// Where drones start and restart.
     pub spawn: SpawnMode,
-    /// Seed of the spawn draws.
+    /// Seed of the spawn draws (and, on streams of their own, the perturbation's).
     pub seed: u64,
+    /// What perturbs the flights ([`Perturbation::NONE`]: the nominal flight).
+    pub perturbation: Perturbation,
 }
 
 impl EpisodeConfig {
@@ -482,6 +486,7 @@ impl EpisodeConfig {
             seconds,
             spawn: SpawnMode::Stage1,
             seed: 0,
+            perturbation: Perturbation::NONE,
         }
     }
 }
@@ -560,26 +565,46 @@ pub fn run_crew<const N: usize>(
     record: bool,
 ) -> Episode {
     let rng = &mut episode_rng(config.seed, index);
+    let perturbed = &mut config
+        .perturbation
+        .episode(&world.preset, config.seed, index);
+    let airframes: [Preset; N] = core::array::from_fn(|i| {
+        if i == 0 {
+            perturbed.ego_preset
+        } else {
+            world.preset
+        }
+    });
     let mut referee = Referee::new(&world.track, world.dt_s);
     let line = *referee.centerline();
     let mut trace = Trace {
         dt_s: world.dt_s,
         ..Trace::default()
     };
-    let spawn = |crew: &mut dyn Crew<N>, rng: &mut ChaCha8Rng| {
+    let spawn = |crew: &mut dyn Crew<N>, rng: &mut ChaCha8Rng, p: &mut EpisodePerturbation| {
         let points = config.spawn.draw(&world.track, &line, rng);
-        let drones: [Drone; N] =
-            core::array::from_fn(|i| Drone::spawned(points.get(i).copied().unwrap_or(points[0])));
+        let drones: [Drone; N] = core::array::from_fn(|i| {
+            let mut point = points.get(i).copied().unwrap_or(points[0]);
+            point.state = p.spawn(point.state);
+            Drone::spawned(point)
+        });
+        p.restart();
         crew.reset(core::array::from_fn(|i| drones[i].progress.target));
         drones
     };
-    let mut drones = spawn(crew, rng);
+    let mut drones = spawn(crew, rng, perturbed);
     referee.restart(&drones);
     let steps = (config.seconds / world.dt_s).round() as u32;
     for k in 0..steps {
-        let states: [VehicleState; N] = core::array::from_fn(|i| drones[i].body.state);
-        let commands = crew.commands(&states);
-        let results = world.step(&mut drones, &commands);
+        let mut states: [VehicleState; N] = core::array::from_fn(|i| drones[i].body.state);
+        if let Some(ego) = states.first_mut() {
+            *ego = perturbed.sense(*ego);
+        }
+        let mut commands = crew.commands(&states);
+        if let Some(ego) = commands.first_mut() {
+            *ego = perturbed.deliver(*ego);
+        }
+        let results = world.step_airframes(&mut drones, &commands, &airframes);
         if record {
             trace.ego_m.push(drones[0].position_m());
             if let Some(o) = drones.get(1) {
@@ -606,7 +631,7 @@ pub fn run_crew<const N: usize>(
             }
         }
         if reset {
-            drones = spawn(crew, rng);
+            drones = spawn(crew, rng, perturbed);
             referee.restart(&drones);
             if record {
                 trace.respawns.push(k + 1);

@@ -195,6 +195,21 @@ impl World {
         self.judge(drones, &from)
     }
 
+    /// [`World::step`] with drone `i` flying airframe `presets[i]` instead of the world's
+    /// (a perturbed ego, `crate::perturb`).
+    pub fn step_airframes<const N: usize>(
+        &self,
+        drones: &mut [Drone; N],
+        commands: &[MotorCommand; N],
+        presets: &[Preset; N],
+    ) -> [DroneStep; N] {
+        let from = drones.each_ref().map(Drone::position_m);
+        for ((d, c), p) in drones.iter_mut().zip(commands).zip(presets) {
+            d.body.step(p, c, self.dt_s);
+        }
+        self.judge(drones, &from)
+    }
+
     /// Scores a step of every drone from `from` (m) to its current position: the segment gate
     /// test at its target (which advances the target on a pass), then the crash rules:
     /// non-finite state, gate frame, ground, bounds, and for two or more drones the closest

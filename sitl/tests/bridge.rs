@@ -42,6 +42,7 @@ fn eval_config(episodes: u32, seconds: f32) -> EvalConfig {
         seconds,
         seed: 7,
         spawn: None,
+        perturbation: sitl::perturb::Perturbation::NONE,
     }
 }
 

@@ -80,6 +80,54 @@ fn eval_prints_the_row_and_writes_every_json_key() {
 }
 
 #[test]
+fn a_perturbed_eval_says_so_and_records_it() {
+    let json = temp("perturbed.json");
+    let (ok, out, err) = sitl(&[
+        "eval",
+        "--ego",
+        "baseline",
+        "--episodes",
+        "2",
+        "--seconds",
+        "5",
+        "--jitter",
+        "--perturb",
+        "thrust=0.95:1.05,latency=1,noise=1",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    assert!(
+        out.contains("perturbed: jitter 5 cm/5°/0.20 m/s, thrust x0.95-1.05, latency 1 steps"),
+        "{out}"
+    );
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let p = &v["perturbation"];
+    assert_eq!(p["latency_steps"], serde_json::json!([1, 1]));
+    assert!((p["thrust_scale"]["lo"].as_f64().unwrap() - 0.95).abs() < 1e-6);
+    assert!((p["jitter"]["position_m"].as_f64().unwrap() - 0.05).abs() < 1e-6);
+    assert!((p["sensor_noise"]["velocity_mps"].as_f64().unwrap() - 0.05).abs() < 1e-6);
+    // Unperturbed, the JSON has no perturbation key (the shipped eval.json files stay valid).
+    let plain = temp("plain.json");
+    let (ok, _, err) = sitl(&[
+        "eval",
+        "--ego",
+        "baseline",
+        "--episodes",
+        "1",
+        "--seconds",
+        "1",
+        "--json",
+        plain.to_str().unwrap(),
+    ]);
+    assert!(ok, "{err}");
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&plain).unwrap()).unwrap();
+    assert!(v.get("perturbation").is_none());
+}
+
+#[test]
 fn a_dnf_and_no_overtake_are_null() {
     let json = temp("dnf.json");
     // 5 s is too short for a lap; alone there is no overtake.
@@ -106,7 +154,7 @@ fn a_dnf_and_no_overtake_are_null() {
 fn bad_input_is_a_clear_error() {
     let corrupt = temp("corrupt.blob");
     std::fs::write(&corrupt, b"OVTK\x01\x00\x00\x00 definitely not a blob").unwrap();
-    let cases: [(&[&str], &str); 8] = [
+    let cases: [(&[&str], &str); 12] = [
         (
             &["eval", "--ego", "/no/such.blob"],
             "cannot read /no/such.blob",
@@ -133,6 +181,22 @@ fn bad_input_is_a_clear_error() {
         ),
         (&["eval", "--ego", "baseline:fast"], "cruise speed must be"),
         (&["eval"], "--ego"),
+        (
+            &["eval", "--ego", "baseline", "--perturb", "mass=-1"],
+            "mass: must lie in [0.1, 10]",
+        ),
+        (
+            &["eval", "--ego", "baseline", "--perturb", "noise=nan"],
+            "noise: 'nan' is not a finite number",
+        ),
+        (
+            &["eval", "--ego", "baseline", "--perturb", "latency=100"],
+            "latency: whole control steps in [0, 50]",
+        ),
+        (
+            &["eval", "--ego", "baseline", "--jitter", "pos=2"],
+            "jitter pos (m): must be a number in [0, 1]",
+        ),
     ];
     for (args, message) in cases {
         let (ok, _, err) = sitl(args);

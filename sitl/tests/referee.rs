@@ -247,6 +247,7 @@ fn recorded_traces_mark_the_referees_overtakes() {
         seconds: 45.0,
         seed: 0,
         spawn: Some(SpawnMode::Stage2),
+        perturbation: sitl::perturb::Perturbation::NONE,
     };
     let episodes = evaluate(&ego, Some(&opponent), &config, true);
     let mut total = 0;

@@ -135,6 +135,7 @@ fn evaluations_are_deterministic_per_seed() {
         seconds: 10.0,
         seed,
         spawn: None,
+        perturbation: sitl::perturb::Perturbation::NONE,
     };
     let run = |threads: usize, seed: u64| {
         let pool = rayon::ThreadPoolBuilder::new()

@@ -31,6 +31,7 @@ fn report(ego: &str, opponent: Option<&str>, preset: Preset, spawn: Option<Spawn
         seconds: 45.0,
         seed: 1,
         spawn,
+        perturbation: sitl::perturb::Perturbation::NONE,
     };
     let ego = PilotSpec::load(ego, &preset).expect("ego");
     let opponent = opponent.map(|o| PilotSpec::load(o, &preset).expect("opponent"));

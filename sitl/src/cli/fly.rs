@@ -47,6 +47,7 @@ pub fn run(args: FlyArgs) -> Result<(), String> {
         seconds: args.common.seconds,
         seed: 0,
         spawn: Some(SpawnMode::Stage1),
+        perturbation: sitl::perturb::Perturbation::NONE,
     };
     let episodes = evaluate(&ego, None, &config, false);
     let m = episodes

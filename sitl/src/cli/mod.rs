@@ -7,17 +7,20 @@
 //! | [`race`] | `sitl race`: a lockstep race over MAVLink |
 //! | [`fc`] | `sitl fc`: one controller as a MAVLink endpoint |
 //! | [`int8`] | `sitl int8-check`: what converting a blob to int8 costs |
+//! | [`robustness`] | `sitl robustness`: scores under the standard perturbations, f32 and int8 |
 
 pub mod eval;
 pub mod fc;
 pub mod fly;
 pub mod int8;
 pub mod race;
+pub mod robustness;
 
 use clap::Args;
 use sitl::dynamics::Preset;
 use sitl::env::PresetName;
 use sitl::eval::EvalConfig;
+use sitl::perturb::{Perturbation, StartJitter};
 use sitl::pilot::PilotSpec;
 use sitl::referee::{EPISODE_SECONDS, SpawnMode};
 use std::path::{Path, PathBuf};
@@ -56,6 +59,7 @@ impl Contest {
             seconds: self.common.seconds,
             seed: self.scoring.seed,
             spawn: self.scoring.spawn,
+            perturbation: self.scoring.perturbation(),
         }
     }
 }
@@ -92,9 +96,29 @@ pub struct Scoring {
     /// `cargo run -p tools -- overtake-figure`).
     #[arg(long)]
     pub trace: Option<PathBuf>,
+    /// Jitter every spawn of every drone, per axis: `--jitter` alone for ±5 cm, ±5° and
+    /// ±0.2 m/s, or `--jitter pos=M,att-deg=DEG,vel=MPS` (docs/DESIGN.md "Perturbations").
+    #[arg(long, value_name = "SPEC", num_args = 0..=1, default_missing_value = "",
+          value_parser = parse_jitter)]
+    pub jitter: Option<StartJitter>,
+    /// Perturb the ego, comma-separated KEY=VALUE, each a value X or a span LO:HI drawn per
+    /// episode: thrust, mass, inertia (factors), motor-tau-ms, latency (20 ms steps), noise
+    /// (multiple of a Crazyflie's estimate), noise-pos (m), noise-vel (m/s), noise-att-deg,
+    /// noise-rate (rad/s). E.g. `--perturb thrust=0.95:1.05,latency=1,noise=1`.
+    #[arg(long, value_name = "SPEC", value_parser = parse_perturbation)]
+    pub perturb: Option<Perturbation>,
 }
 
 impl Scoring {
+    /// `--perturb` with `--jitter`'s start jitter.
+    pub fn perturbation(&self) -> Perturbation {
+        let mut p = self.perturb.unwrap_or(Perturbation::NONE);
+        if let Some(j) = self.jitter {
+            p.jitter = j;
+        }
+        p
+    }
+
     /// Writes the recorded episodes to `--trace`, if given.
     pub fn write_traces(
         &self,
@@ -143,6 +167,16 @@ pub fn write(path: &Path, bytes: &[u8]) -> Result<(), String> {
 /// `--preset`.
 pub fn parse_preset(s: &str) -> Result<Preset, String> {
     s.parse::<PresetName>().map(PresetName::preset)
+}
+
+/// `--perturb`.
+fn parse_perturbation(s: &str) -> Result<Perturbation, String> {
+    Perturbation::NONE.parse_onto(s)
+}
+
+/// `--jitter`.
+fn parse_jitter(s: &str) -> Result<StartJitter, String> {
+    Perturbation::NONE.with_jitter(s).map(|p| p.jitter)
 }
 
 /// Seconds of an episode: at least one control step ([`sitl::world::CONTROL_PERIOD_NS`],

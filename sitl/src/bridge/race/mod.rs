@@ -20,7 +20,7 @@ pub use report::{ControllerReport, RaceOutcome};
 
 use crate::eval::{EvalConfig, Report};
 use crate::pilot::PilotSpec;
-use crate::referee::{Episode, EpisodeConfig, run_crew};
+use crate::referee::{Episode, run_crew};
 use crate::world::World;
 use launch::{Endpoint, launch};
 use lockstep::{Link, Lockstep};
@@ -168,11 +168,7 @@ fn fly(
     config: &RaceConfig,
     race_mode: bool,
 ) -> Vec<Episode> {
-    let episode = EpisodeConfig {
-        seconds: config.eval.seconds,
-        spawn: config.eval.spawn_mode(race_mode),
-        seed: config.eval.seed,
-    };
+    let episode = config.eval.episode(race_mode);
     let mut episodes = Vec::with_capacity(config.eval.episodes as usize);
     for i in 0..config.eval.episodes {
         let e = if race_mode {
