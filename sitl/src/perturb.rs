@@ -21,7 +21,7 @@ use firmware_core::math::{Quat, Vec3};
 use firmware_core::vehicle::{MotorCommand, VehicleState};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::collections::VecDeque;
 
 /// A closed interval drawn uniformly once per episode; `lo == hi` is a fixed value.
@@ -497,6 +497,47 @@ impl Perturbation {
     }
 }
 
+/// A [`Perturbation`] as a config writes it: `--perturb`'s text, kept as written (it is part
+/// of a training config's hash), with its parsed value. (De)serialised as the text.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PerturbSpec {
+    text: String,
+    value: Perturbation,
+}
+
+impl PerturbSpec {
+    /// Parses `text` as `--perturb` does ([`Perturbation::parse_onto`] on none).
+    pub fn parse(text: &str) -> Result<Self, String> {
+        Ok(Self {
+            value: Perturbation::NONE.parse_onto(text)?,
+            text: text.to_string(),
+        })
+    }
+
+    /// The perturbation.
+    pub fn value(&self) -> &Perturbation {
+        &self.value
+    }
+
+    /// The text as written.
+    pub fn text(&self) -> &str {
+        &self.text
+    }
+}
+
+impl Serialize for PerturbSpec {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(&self.text)
+    }
+}
+
+impl<'de> Deserialize<'de> for PerturbSpec {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        Self::parse(&text).map_err(serde::de::Error::custom)
+    }
+}
+
 fn parse_span(key: &str, value: &str) -> Result<Span, String> {
     let num = |s: &str| -> Result<f32, String> {
         match s.trim().parse::<f32>() {
@@ -541,9 +582,14 @@ impl EpisodePerturbation {
     /// A new flight: the commands in flight are lost and the motors wait, stopped, for the
     /// first one.
     pub fn restart(&mut self) {
+        self.restart_turning(MotorCommand::STOP);
+    }
+
+    /// A new flight whose propellers turn at `now` (a training replay of a state in flight):
+    /// the motors receive `now` until the first command arrives.
+    pub fn restart_turning(&mut self, now: MotorCommand) {
         self.pending.clear();
-        self.pending
-            .extend((0..self.latency_steps).map(|_| MotorCommand::STOP));
+        self.pending.extend((0..self.latency_steps).map(|_| now));
     }
 
     /// The ego's state as its estimator reports it.

@@ -911,3 +911,72 @@ fn opponents_stepped_side_by_side_fly_as_one_by_one() {
         );
     }
 }
+
+/// `randomize` perturbs the ego as the referee's `--perturb` does: sensor noise changes what
+/// it observes and not where it flies (the rewards, computed from the true state, are bit
+/// for bit the nominal ones), an airframe change and a latency change where it flies, and
+/// without `randomize` the config serialises as before (no key: shipped config hashes hold).
+#[test]
+fn randomize_perturbs_the_ego_as_the_referee_does() {
+    use sitl::perturb::PerturbSpec;
+    let with = |spec: &str| {
+        VecEnv::time_trial(EnvConfig {
+            randomize: Some(PerturbSpec::parse(spec).unwrap()),
+            ..config(4)
+        })
+    };
+    let fly = |mut env: VecEnv| {
+        let mut rewards = Vec::new();
+        let mut observations = env.observations().to_vec();
+        for k in 0..30 {
+            let a = vec![0.5 + 0.01 * k as f32; 16];
+            env.step(&a).unwrap();
+            rewards.extend_from_slice(env.rewards());
+            observations.extend_from_slice(env.observations());
+        }
+        (rewards, observations)
+    };
+    let nominal = fly(VecEnv::time_trial(config(4)));
+    let noisy = fly(with("noise=1"));
+    assert_eq!(noisy.0, nominal.0, "noise moved the drone");
+    assert_ne!(noisy.1, nominal.1, "noise did not reach the observations");
+    let worst = noisy
+        .1
+        .iter()
+        .zip(&nominal.1)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(
+        worst < 0.5,
+        "noise of a Crazyflie's size, not garbage: {worst}"
+    );
+    // Randomising never moves the spawns: the first observation with a new airframe is
+    // the nominal one.
+    for spec in ["latency=1", "thrust=0.9", "mass=1.1", "motor-tau-ms=30"] {
+        assert_eq!(
+            with(spec).observations(),
+            VecEnv::time_trial(config(4)).observations()
+        );
+        let perturbed = fly(with(spec));
+        assert_ne!(perturbed.0, nominal.0, "{spec} did not change the flight");
+    }
+    // The first step of a 1-step latency flies stopped motors: the ego loses height and
+    // the progress reward of that step differs, where the noise-free airframe draws
+    // nothing else.
+    let late = fly(with("latency=1"));
+    assert_ne!(late.0[0], nominal.0[0]);
+    let json = serde_json::to_value(config(1)).unwrap();
+    assert!(json.get("randomize").is_none(), "{json}");
+    let bad: Result<EnvConfig, _> = serde_json::from_value(serde_json::json!({
+        "num_envs": 1, "preset": "paper", "spawn": "stage1", "episode_s": 15.0,
+        "random_initial_episode_length": false, "randomize": "mass=-1"
+    }));
+    let e = bad.unwrap_err().to_string();
+    assert!(e.contains("mass: must lie in [0.1, 10]"), "{e}");
+    let json = serde_json::to_value(EnvConfig {
+        randomize: Some(PerturbSpec::parse("latency=0:1, noise=1").unwrap()),
+        ..config(1)
+    })
+    .unwrap();
+    assert_eq!(json["randomize"], "latency=0:1, noise=1");
+}

@@ -165,7 +165,7 @@ impl RustVecEnv {
     #[pyo3(signature = (*, task, num_envs, preset, seed, spawn, episode_s,
         random_initial_episode_length, opponent, competition, competition_weight, row,
         velocity_scale_mps, spawn_speed_mps, stage1_fraction, replay_fraction=0.0,
-        reward_weights=None, stage2_fraction=0.0, fold_mirror=false))]
+        reward_weights=None, stage2_fraction=0.0, fold_mirror=false, randomize=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         task: &str,
@@ -186,6 +186,7 @@ impl RustVecEnv {
         reward_weights: Option<std::collections::HashMap<String, f32>>,
         stage2_fraction: f32,
         fold_mirror: bool,
+        randomize: Option<&str>,
     ) -> PyResult<Self> {
         let value_error = |e: String| PyValueError::new_err(e);
         let task: Task = task.parse().map_err(value_error)?;
@@ -231,6 +232,12 @@ impl RustVecEnv {
             stage2_fraction,
             replay_fraction,
             fold_mirror,
+            randomize: randomize
+                .map(|r| {
+                    sitl::perturb::PerturbSpec::parse(r)
+                        .map_err(|e| PyValueError::new_err(format!("randomize: {e}")))
+                })
+                .transpose()?,
             layout: row.observation_layout(),
             reward: reward_weights_from(reward_weights.unwrap_or_default())?,
             race,

@@ -309,11 +309,29 @@ def test_race_events():
         ({"task": "race", "opponent": str(OPPONENT), "competition": "x"}, ValueError, "competition 'x'"),
         ({"task": "race", "opponent": "/nonexistent.blob"}, FileNotFoundError, "/nonexistent.blob"),
         ({"task": "race", "opponent": str(POLICIES / "stage2.blob")}, ValueError, "observes an opponent"),
+        ({"randomize": "mass=-1"}, ValueError, "randomize: mass: must lie in"),
+        ({"randomize": "gravity=2"}, ValueError, "unknown perturbation 'gravity'"),
     ],
 )
 def test_bad_arguments_raise(kw, exc, text):
     with pytest.raises(exc, match=text):
         overtake.make_vec_env(**kw)
+
+
+def test_randomize_changes_the_observations_not_the_flight():
+    """Sensor noise (``randomize="noise=1"``) reaches the observations; the rewards, judged
+    on the true state, are the nominal ones."""
+    nominal = overtake.make_vec_env(num_envs=8, seed=3)
+    noisy = overtake.make_vec_env(num_envs=8, seed=3, randomize="noise=1")
+    o1, _ = nominal.reset(seed=3)
+    o2, _ = noisy.reset(seed=3)
+    assert not np.array_equal(o1, o2)
+    assert np.abs(o1 - o2).max() < 0.5
+    hover = np.full((8, 4), 0.519, np.float32)
+    for _ in range(20):
+        _, r1, *_ = nominal.step(hover)
+        _, r2, *_ = noisy.step(hover)
+        assert np.array_equal(r1, r2)
 
 
 def test_a_corrupt_opponent_is_refused(tmp_path):

@@ -12,6 +12,7 @@
 
 use super::reward::{Competition, RewardWeights};
 use crate::dynamics::{Preset, PresetName};
+use crate::perturb::PerturbSpec;
 use crate::referee::SpawnMode;
 use firmware_core::observation::{ObservationLayout, ObservationSpec};
 use serde::{Deserialize, Serialize};
@@ -143,6 +144,13 @@ pub struct EnvConfig {
     /// 2), so the controller folds as training did. Paper: false. Default false (left out).
     #[serde(default, skip_serializing_if = "is_false")]
     pub fold_mirror: bool,
+    /// Domain randomisation of the ego (not the paper's): the referee's perturbations
+    /// (docs/DESIGN.md "Perturbations") in `sitl eval --perturb`'s words, e.g.
+    /// `"latency=0:1,motor-tau-ms=0:30,noise=1"`. The airframe and the latency are drawn at
+    /// every spawn, the sensor noise is added to the ego's observed state every step; the
+    /// opponent flies the nominal airframe. Default none (left out).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub randomize: Option<PerturbSpec>,
     /// Which terms an observation holds: 17 values for a time trial (row A), 20 for row B,
     /// 30 for rows C-G. In a training config, `run.row` sets it.
     #[serde(skip, default = "time_trial_layout")]
@@ -209,6 +217,7 @@ impl EnvConfig {
             stage2_fraction: 0.0,
             replay_fraction: 0.0,
             fold_mirror: false,
+            randomize: None,
             layout: ObservationLayout::TimeTrial17,
             reward: RewardWeights::default(),
             race: None,

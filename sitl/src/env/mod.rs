@@ -18,6 +18,7 @@
 //! **The reward** of a step, term by term, is [`reward`]'s (docs/DESIGN.md "Rewards").
 
 use crate::mirror::{Mirror, NoMirror};
+use crate::perturb::EpisodePerturbation;
 use crate::referee::{SpawnMode, TrackProgress};
 use crate::world::{Drone, World};
 use firmware_core::Controller;
@@ -53,6 +54,9 @@ use reward::{Rewards, StepOutcome};
 use spawn::{PassReplay, SpawnRule, respawn};
 pub use stats::{EnvStats, StepRecord};
 
+/// Mixed into the seed of the randomisation generators (`Slot::perturb_rng`).
+const PERTURB_SEED_KEY: u64 = 0x7261_6e64_6f6d_697a; // "randomiz"
+
 /// Envs per rayon task.
 const CHUNK: usize = 128;
 
@@ -67,9 +71,15 @@ struct Slot {
     /// Each drone's centreline segment at its last spawn (for the `lead` reward).
     spawn_segment: [u64; 2],
     rng: ChaCha8Rng,
+    /// The generator of the ego's randomisation draws (`EnvConfig::randomize`), apart from
+    /// `rng`: randomising never moves where or when an env spawns.
+    perturb_rng: ChaCha8Rng,
     stats: EnvStats,
     /// The ego's states after its last gate passes (for `replay_fraction`).
     passes: PassReplay,
+    /// The ego's randomised airframe, latency and sensor noise this episode
+    /// (`EnvConfig::randomize`).
+    perturbed: Option<EpisodePerturbation>,
 }
 
 /// Many stage-1 or stage-2 worlds with their observations, rewards and episode ends.
@@ -181,10 +191,22 @@ impl VecEnv {
                 steps: 0,
                 spawn_segment: [0; 2],
                 rng,
+                perturb_rng: {
+                    let mut r = ChaCha8Rng::seed_from_u64(env.config.seed ^ PERTURB_SEED_KEY);
+                    r.set_stream(i as u64);
+                    r
+                },
                 stats: EnvStats::default(),
                 passes: PassReplay::default(),
+                perturbed: None,
             };
-            respawn(&env.world, &env.progress, &env.spawn_rule(), &mut slot);
+            respawn(
+                &env.world,
+                &env.progress,
+                &env.map,
+                &env.spawn_rule(),
+                &mut slot,
+            );
             slot.steps = steps;
             env.slots.push(slot);
         }
@@ -196,7 +218,7 @@ impl VecEnv {
     fn observe_all(&mut self) {
         for (slot, obs) in self
             .slots
-            .iter()
+            .iter_mut()
             .zip(self.observations.chunks_exact_mut(self.obs_dim))
         {
             observe(&self.world, &self.spec, self.fold.as_ref(), slot, obs);
@@ -215,6 +237,7 @@ impl VecEnv {
             stage2_fraction: self.config.stage2_fraction,
             replay_fraction: self.config.replay_fraction,
             race: self.race.is_some(),
+            randomize: self.config.randomize.as_ref().map(|p| *p.value()),
         }
     }
 
@@ -379,7 +402,7 @@ impl VecEnv {
                         if ended {
                             let row = i * obs_dim..(i + 1) * obs_dim;
                             observe(world, spec, fold, slot, &mut last[row]);
-                            respawn(world, progress, &rule, slot);
+                            respawn(world, progress, map, &rule, slot);
                         }
                         rew[i] = rec.terms.total() as f32;
                         done[i] = ended;
@@ -459,7 +482,7 @@ impl VecEnv {
     pub fn respawn_all(&mut self) {
         let rule = self.spawn_rule();
         for slot in &mut self.slots {
-            respawn(&self.world, &self.progress, &rule, slot);
+            respawn(&self.world, &self.progress, &self.map, &rule, slot);
         }
         self.observe_all();
     }
@@ -567,14 +590,22 @@ fn step_slot(
     let d = &slot.drones[0];
     let gate = world.track.gate(d.progress.target).center_m;
     let before = d.position_m();
+    let (command, airframe) = match &mut slot.perturbed {
+        Some(p) => (p.deliver(map.command(action)), p.ego_preset),
+        None => (map.command(action), world.preset),
+    };
     let (result, opponent_crashed) = match opponent_command {
         Some(opp_command) => {
-            let [e, o] = world.step(&mut slot.drones, &[map.command(action), opp_command]);
+            let [e, o] = world.step_airframes(
+                &mut slot.drones,
+                &[command, opp_command],
+                &[airframe, world.preset],
+            );
             (e, o.crash.is_some())
         }
         None => {
             let [ego, _] = &mut slot.drones;
-            let [e] = world.step(core::array::from_mut(ego), &[map.command(action)]);
+            let [e] = world.step_airframes(core::array::from_mut(ego), &[command], &[airframe]);
             (e, false)
         }
     };
@@ -616,15 +647,31 @@ fn step_slot(
 }
 
 /// The ego's observation of its slot, folded by `fold` (the env's, when its spec is
-/// folded); zeros when the pipeline refuses the state.
+/// folded), through its sensor noise when randomised; zeros when the pipeline refuses the
+/// state.
 fn observe(
     world: &World,
     spec: &ObservationSpec,
     fold: Option<&TrackMirror>,
-    slot: &Slot,
+    slot: &mut Slot,
     out: &mut [f32],
 ) {
-    match ego_observation(world, spec, fold, slot, slot.opponent.is_some()) {
+    let racing = slot.opponent.is_some();
+    let [d, opp] = &slot.drones;
+    let own = match &mut slot.perturbed {
+        Some(p) => p.sense(d.body.state),
+        None => d.body.state,
+    };
+    let seen = observe_folded(
+        spec,
+        fold,
+        &world.track,
+        &own,
+        d.progress.target,
+        &slot.previous_action,
+        racing.then_some(&opp.body.state),
+    );
+    match seen {
         Ok((o, _)) => out.copy_from_slice(o.as_slice()),
         // Only a diverged state fails, and a diverged state is a crash that was respawned.
         Err(_) => out.fill(0.0),

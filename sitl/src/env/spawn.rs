@@ -2,10 +2,12 @@
 //! it replays (docs/DESIGN.md "Spawns").
 
 use super::Slot;
+use crate::perturb::Perturbation;
 use crate::referee::{SpawnMode, TrackProgress};
 use crate::world::{Drone, World};
 use firmware_core::math::Vec3;
 use firmware_core::nn::ACTION_DIM;
+use firmware_core::vehicle::{ActionMap, MotorCommand};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
@@ -42,6 +44,8 @@ pub(super) struct SpawnRule {
     pub(super) stage2_fraction: f32,
     pub(super) replay_fraction: f32,
     pub(super) race: bool,
+    /// The ego's domain randomisation (`EnvConfig::randomize`), drawn anew at every spawn.
+    pub(super) randomize: Option<Perturbation>,
 }
 
 /// A new episode in `slot`: a spawn drawn from its generator. In a race, the paper's stage-2 spawn
@@ -53,14 +57,39 @@ pub(super) struct SpawnRule {
 /// neither replayed nor stage-1, a share `stage2_fraction` is the ego's or the opponent's
 /// stage-2 spawn (at rest). A share of 0 draws no random number, so configs without it keep
 /// their streams.
-pub(super) fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut Slot) {
+///
+/// With `randomize`, the ego's airframe and latency are then drawn (from the slot's own
+/// randomisation generator: the spawns stay those of the unrandomised envs), and the
+/// commands in flight are those its
+/// propellers turn at: stopped after a spawn at rest, the replayed step's after a replay.
+pub(super) fn respawn(
+    world: &World,
+    progress: &TrackProgress,
+    map: &ActionMap,
+    rule: &SpawnRule,
+    slot: &mut Slot,
+) {
+    let replayed = place(world, progress, rule, slot);
+    if let Some(p) = &rule.randomize {
+        let mut drawn = p.episode(&world.preset, slot.perturb_rng.random::<u64>(), 0);
+        drawn.restart_turning(if replayed {
+            map.command(&slot.previous_action)
+        } else {
+            MotorCommand::STOP
+        });
+        slot.perturbed = Some(drawn);
+    }
+}
+
+/// Places the drones of a new episode ([`respawn`]); true when the ego's state is a replay.
+fn place(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut Slot) -> bool {
     if !rule.race && rule.replay_fraction > 0.0 && slot.rng.random::<f32>() < rule.replay_fraction {
         if let Some((drone, previous_action)) = slot.passes.draw(&mut slot.rng) {
             slot.drones[0] = drone;
             slot.spawn_segment[0] = progress.spawn_segment(drone.progress.target);
             slot.previous_action = previous_action;
             slot.steps = 0;
-            return;
+            return true;
         }
     }
     let line = progress.line();
@@ -97,4 +126,5 @@ pub(super) fn respawn(world: &World, progress: &TrackProgress, rule: &SpawnRule,
     }
     slot.previous_action = [0.0; ACTION_DIM];
     slot.steps = 0;
+    false
 }

@@ -76,6 +76,7 @@ def make_vec_env(
     reward_weights: dict[str, float] | None = None,
     fold_mirror: bool | None = None,
     policy: str | os.PathLike[str] | Policy | None = None,
+    randomize: str | None = None,
 ) -> OvertakeVecEnv:
     """``num_envs`` auto-resetting environments of a time trial or a race.
 
@@ -132,6 +133,10 @@ def make_vec_env(
             observes its mirror image, and its action is the image's, the motors renumbered
             back by the environment. A policy trained so must be exported folded
             (``host-trainer import-rslrl --fold-mirror``) for the controller to fly it.
+        randomize: domain randomisation of the ego (host-trainer's ``env.randomize``), in
+            ``sitl eval --perturb``'s words, e.g. ``"latency=0:1,motor-tau-ms=0:30,noise=1"``:
+            airframe and latency drawn at every spawn, sensor noise on the observed state
+            every step (docs/DESIGN.md "Perturbations"). ``None``: the nominal world.
         policy: a blob path or :class:`Policy`: build the envs that policy observes (its
             layout, velocity scale and fold). A setting passed as well that contradicts it
             is a ``ValueError``.
@@ -173,6 +178,7 @@ def make_vec_env(
         ),
         row=row,
         reward_weights=reward_weights,
+        randomize=randomize,
         **env_settings,
     )
     return OvertakeVecEnv(env, task=task)
