@@ -172,16 +172,8 @@ impl RunDir {
             }
             Err(e) => return Err(TrainError::Io(self.metrics.clone(), e)),
         };
-        let mut keep = 0;
-        for line in text.split_inclusive('\n') {
-            let kept = line.ends_with('\n')
-                && serde_json::from_str::<IterationMetrics>(line)
-                    .is_ok_and(|m| m.iteration <= last);
-            if !kept {
-                break;
-            }
-            keep += line.len();
-        }
+        let (_, keep) = kept_metrics(&text, last)
+            .map_err(|e| TrainError::Checkpoint(format!("{} {e}", self.metrics.display())))?;
         let f = std::fs::OpenOptions::new()
             .create(true)
             .write(true)
@@ -218,23 +210,9 @@ impl RunDir {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
             Err(e) => return Err(TrainError::Io(self.metrics.clone(), e)),
         };
-        let lines: Vec<&str> = text.lines().collect();
-        let mut history = Vec::new();
-        for (i, line) in lines.iter().enumerate() {
-            match serde_json::from_str::<IterationMetrics>(line) {
-                Ok(m) if m.iteration <= last => history.push(m),
-                Ok(_) => {}
-                Err(_) if i + 1 == lines.len() => {}
-                Err(e) => {
-                    return Err(TrainError::Checkpoint(format!(
-                        "{} line {}: {e}",
-                        self.metrics.display(),
-                        i + 1
-                    )));
-                }
-            }
-        }
-        Ok(history)
+        kept_metrics(&text, last)
+            .map(|(history, _)| history)
+            .map_err(|e| TrainError::Checkpoint(format!("{} {e}", self.metrics.display())))
     }
 
     /// Writes `checkpoints/iter_N/` for `s` and then points `checkpoints/latest` at it;
@@ -541,6 +519,31 @@ impl RunDir {
     }
 }
 
+/// The lines of `metrics.jsonl` that a run resumed at iteration `last` keeps, and their
+/// length in bytes: the complete (newline-terminated) lines of iterations up to `last`, in
+/// order, up to the first that is not. A line that does not parse is a torn write when it is
+/// the last one (dropped) and an error (`line N: why`) anywhere else. One rule for the
+/// history a resume restores and for where the file is cut, so the two always agree.
+fn kept_metrics(text: &str, last: u32) -> Result<(Vec<IterationMetrics>, usize), String> {
+    let lines: Vec<&str> = text.split_inclusive('\n').collect();
+    let mut history = Vec::new();
+    let mut keep = 0;
+    for (i, line) in lines.iter().enumerate() {
+        match serde_json::from_str::<IterationMetrics>(line) {
+            Ok(m) if line.ends_with('\n') && m.iteration <= last => {
+                keep += line.len();
+                history.push(m);
+            }
+            // Past the checkpoint (the lost interval the run redoes), or torn before its
+            // newline.
+            Ok(_) => break,
+            Err(_) if i + 1 == lines.len() => break,
+            Err(e) => return Err(format!("line {}: {e}", i + 1)),
+        }
+    }
+    Ok((history, keep))
+}
+
 /// Why a checkpoint cannot be resumed from.
 enum Unusable {
     /// Damaged: the previous checkpoint may be used instead.
@@ -621,4 +624,42 @@ pub fn checkpoint_actor(
     let arch = config.architecture()?;
     let state = RunDir::new(out).load_checkpoint::<Actor, Critic>(config, &arch, device)?;
     Ok((state.iteration, state.learner.actor))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn line(iteration: u32) -> String {
+        let m = IterationMetrics {
+            iteration,
+            samples: u64::from(iteration) * 100,
+            ..IterationMetrics::default()
+        };
+        metrics_line(&m).unwrap() + "\n"
+    }
+
+    #[test]
+    fn resume_keeps_complete_lines_up_to_the_checkpoint_and_cuts_there() {
+        let three = format!("{}{}{}", line(1), line(2), line(3));
+        // Lines past the checkpoint are the lost interval: history and cut stop before them.
+        let (h, keep) = kept_metrics(&three, 2).unwrap();
+        assert_eq!(h.iter().map(|m| m.iteration).collect::<Vec<_>>(), [1, 2]);
+        assert_eq!(keep, line(1).len() + line(2).len());
+        // A last line that parses but lost its newline is torn: neither kept nor counted, so
+        // the history never holds a line the cut file lacks.
+        let torn = format!("{}{}", line(1), line(2).trim_end());
+        let (h, keep) = kept_metrics(&torn, 5).unwrap();
+        assert_eq!((h.len(), keep), (1, line(1).len()));
+        // A half-written last line is dropped; garbage before the end is an error naming it.
+        let half = format!("{}{{\"iteration\": 2, \"sam", line(1));
+        assert_eq!(kept_metrics(&half, 5).unwrap().0.len(), 1);
+        let garbage = format!("{}not json\n{}", line(1), line(2));
+        assert!(
+            kept_metrics(&garbage, 5)
+                .unwrap_err()
+                .starts_with("line 2:")
+        );
+        assert_eq!(kept_metrics("", 5).unwrap(), (Vec::new(), 0));
+    }
 }
