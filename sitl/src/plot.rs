@@ -137,26 +137,78 @@ pub fn line_chart(title: &str, x_label: &str, y_label: &str, series: &[Series]) 
         (t + h - b) / 2.0,
         escape(y_label)
     );
+    let mut drawn: Vec<(f64, f64)> = Vec::new();
     for (i, s) in series.iter().enumerate() {
         let color = COLORS[i % COLORS.len()];
-        let pts: Vec<String> = s
+        let px: Vec<(f64, f64)> = s
             .points
             .iter()
             .filter(|(x, y)| x.is_finite() && y.is_finite())
-            .map(|&(x, y)| format!("{:.1},{:.1}", sx(x), sy(y)))
+            .map(|&(x, y)| (sx(x), sy(y)))
             .collect();
+        // The segments' interiors count too: a legend must not cover a line between points.
+        for pair in px.windows(2) {
+            let [(ax, ay), (bx, by)] = [pair[0], pair[1]];
+            let n = (((bx - ax).abs() + (by - ay).abs()) / 4.0)
+                .ceil()
+                .min(400.0) as usize;
+            drawn.extend((0..n).map(|k| {
+                let f = k as f64 / n as f64;
+                (ax + f * (bx - ax), ay + f * (by - ay))
+            }));
+        }
+        drawn.extend(px.iter().copied());
+        let pts: Vec<String> = px.iter().map(|(x, y)| format!("{x:.1},{y:.1}")).collect();
         let _ = writeln!(
             svg,
             r#"<polyline points="{}" fill="none" stroke="{color}" stroke-width="1.5"/>"#,
             pts.join(" ")
         );
-        let ly = t + 16.0 + 16.0 * i as f64;
+    }
+    // The legend goes in the corner of the plot where it covers the fewest drawn points,
+    // on a white panel.
+    let text_w = series
+        .iter()
+        .map(|s| s.name.chars().count())
+        .max()
+        .unwrap_or(0) as f64
+        * 6.6;
+    let (lw, lh) = (36.0 + text_w + 8.0, 16.0 * series.len() as f64 + 8.0);
+    let corners = [
+        (l + 4.0, t + 4.0),
+        (w - r - 4.0 - lw, t + 4.0),
+        (w - r - 4.0 - lw, h - b - 4.0 - lh),
+        (l + 4.0, h - b - 4.0 - lh),
+    ];
+    let covered = |&(cx, cy): &(f64, f64)| {
+        drawn
+            .iter()
+            .filter(|(x, y)| {
+                // A line within 6 px of the panel counts as under it: it would touch.
+                *x >= cx - 6.0 && *x <= cx + lw + 6.0 && *y >= cy - 6.0 && *y <= cy + lh + 6.0
+            })
+            .count()
+    };
+    let (cx, cy) = corners
+        .iter()
+        .copied()
+        .min_by_key(covered)
+        .unwrap_or(corners[0]);
+    if !series.is_empty() {
         let _ = writeln!(
             svg,
-            r#"<line x1="{}" y1="{ly}" x2="{}" y2="{ly}" stroke="{color}" stroke-width="2"/><text x="{}" y="{}">{}</text>"#,
-            l + 10.0,
-            l + 30.0,
-            l + 36.0,
+            r##"<rect class="legend" x="{cx:.1}" y="{cy:.1}" width="{lw:.1}" height="{lh:.1}" fill="white" fill-opacity="0.85" stroke="#ccc"/>"##
+        );
+    }
+    for (i, s) in series.iter().enumerate() {
+        let color = COLORS[i % COLORS.len()];
+        let ly = cy + 12.0 + 16.0 * i as f64;
+        let _ = writeln!(
+            svg,
+            r#"<line x1="{:.1}" y1="{ly:.1}" x2="{:.1}" y2="{ly:.1}" stroke="{color}" stroke-width="2"/><text x="{:.1}" y="{:.1}">{}</text>"#,
+            cx + 6.0,
+            cx + 26.0,
+            cx + 32.0,
             ly + 4.0,
             escape(&s.name)
         );
@@ -460,5 +512,76 @@ mod tests {
         assert!(!s.contains("NaN"));
         let empty = line_chart("t", "x", "y", &[]);
         assert!(empty.contains("</svg>"));
+    }
+
+    /// The legend's panel (x, y, width, height) in a chart.
+    fn legend_box(svg: &str) -> [f64; 4] {
+        let tag = svg.split("<rect class=\"legend\" ").nth(1).unwrap();
+        let attr = |name: &str| -> f64 {
+            let v = tag.split(&format!("{name}=\"")).nth(1).unwrap();
+            v[..v.find('"').unwrap()].parse().unwrap()
+        };
+        [attr("x"), attr("y"), attr("width"), attr("height")]
+    }
+
+    /// How many of 1,000 points along each series' lines (x in [0, 100], y in [0, 1], the
+    /// chart's 640 x 400 with margins 70/20/40/50) the legend's panel covers.
+    fn covered(svg: &str, series: &[Series]) -> usize {
+        let [x, y, lw, lh] = legend_box(svg);
+        series
+            .iter()
+            .flat_map(|s| {
+                s.points.windows(2).flat_map(|p| {
+                    (0..100).map(move |k| {
+                        let f = f64::from(k) / 100.0;
+                        (
+                            p[0].0 + f * (p[1].0 - p[0].0),
+                            p[0].1 + f * (p[1].1 - p[0].1),
+                        )
+                    })
+                })
+            })
+            .filter(|(px, py)| {
+                let (sx, sy) = (70.0 + px / 100.0 * 550.0, 350.0 - py * 310.0);
+                sx >= x && sx <= x + lw && sy >= y && sy <= y + lh
+            })
+            .count()
+    }
+
+    #[test]
+    fn the_legend_avoids_the_data() {
+        let curve = |name: &str, f: &dyn Fn(f64) -> f64| Series {
+            name: name.into(),
+            points: (0..=10)
+                .map(|i| (f64::from(i) * 10.0, f(f64::from(i) * 10.0)))
+                .collect(),
+        };
+        // A learning curve (rising, then flat at the top), a loss (falling), and two lines
+        // along the top and the left edge, which leave only the bottom right free.
+        let cases = [
+            vec![curve("a rather long run label (seed 1)", &|x| {
+                (x / 30.0).min(1.0)
+            })],
+            vec![curve("loss", &|x| 1.0 / (1.0 + x))],
+            vec![
+                curve("top", &|_| 1.0),
+                Series {
+                    name: "left edge".into(),
+                    points: vec![(0.0, 1.0), (10.0, 0.0)],
+                },
+            ],
+        ];
+        for series in &cases {
+            let svg = line_chart("t", "x", "y", series);
+            assert_eq!(covered(&svg, series), 0, "{:?}", legend_box(&svg));
+        }
+        // The old fixed place, the top left, covered the learning curve's rise.
+        let [x, y, ..] = legend_box(&line_chart("t", "x", "y", &cases[0]));
+        assert!(x > 320.0 && y > 200.0, "legend at ({x}, {y})");
+        let [x, y, ..] = legend_box(&line_chart("t", "x", "y", &cases[2]));
+        assert!(
+            x > 320.0 && y > 200.0,
+            "legend at ({x}, {y}): not the free corner"
+        );
     }
 }
