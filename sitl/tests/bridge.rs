@@ -306,6 +306,128 @@ fn malformed_duplicated_reordered_and_impostor_frames_change_nothing() {
     println!("{}", outcome.summary());
 }
 
+/// A UDP proxy that makes a lossy network in both directions, seeded: each datagram is
+/// dropped with probability `loss`, else delivered after a delay drawn from 0-20 ms (so
+/// datagrams overtake each other), and with probability `loss` delivered twice.
+struct LossyProxy {
+    addr: SocketAddr,
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<u64>>,
+}
+
+impl LossyProxy {
+    fn new(controller: SocketAddr, loss: f64, seed: u64) -> Self {
+        use rand::{Rng, SeedableRng};
+        let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+        socket
+            .set_read_timeout(Some(Duration::from_micros(500)))
+            .unwrap();
+        let addr = socket.local_addr().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let flag = stop.clone();
+        let thread = std::thread::spawn(move || {
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            let mut sim: Option<SocketAddr> = None;
+            // (due, destination, datagram), delivered in order of due time.
+            let mut queue: Vec<(Instant, SocketAddr, Vec<u8>)> = Vec::new();
+            let mut buf = vec![0u8; 65_536];
+            let mut dropped = 0u64;
+            while !flag.load(Ordering::Relaxed) {
+                let now = Instant::now();
+                queue.sort_by_key(|q| q.0);
+                while queue.first().is_some_and(|q| q.0 <= now) {
+                    let (_, dest, d) = queue.remove(0);
+                    let _ = socket.send_to(&d, dest);
+                }
+                let Ok((n, from)) = socket.recv_from(&mut buf) else {
+                    continue;
+                };
+                let to_sim = from == controller;
+                if !to_sim {
+                    sim = Some(from);
+                }
+                let Some(dest) = (if to_sim { sim } else { Some(controller) }) else {
+                    continue;
+                };
+                if rng.random_bool(loss) {
+                    dropped += 1;
+                    continue;
+                }
+                let copies = if rng.random_bool(loss) { 2 } else { 1 };
+                for _ in 0..copies {
+                    let delay = Duration::from_micros(rng.random_range(0..20_000));
+                    queue.push((Instant::now() + delay, dest, buf[..n].to_vec()));
+                }
+            }
+            dropped
+        });
+        Self {
+            addr,
+            stop,
+            thread: Some(thread),
+        }
+    }
+
+    /// Stops the proxy and says how many datagrams it dropped.
+    fn dropped(mut self) -> u64 {
+        self.stop.store(true, Ordering::Relaxed);
+        self.thread.take().map_or(0, |t| t.join().unwrap_or(0))
+    }
+}
+
+impl Drop for LossyProxy {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// Issue [faults]: under 5 % loss, duplication, reordering and 0-20 ms of jitter in both
+/// directions, on signed links, a race gives exactly `sitl eval`'s report and trajectories:
+/// lost requests and lost answers are sent again, and a repeated step is answered from the
+/// controller's cache, never stepped twice (a pilot stepped twice would advance its
+/// recurrent state and the trajectories would part).
+#[test]
+fn a_lossy_jittery_network_gives_sitl_evals_race() {
+    let key = Some(signing_key("lossy").unwrap());
+    let ego = fc_thread(&student(), 1, key);
+    let opp = fc_thread("baseline", 2, key);
+    let (p_ego, p_opp) = (LossyProxy::new(ego, 0.05, 1), LossyProxy::new(opp, 0.05, 2));
+    let entrants = [
+        entrant("ego", &student(), 1),
+        entrant("opponent", "baseline", 2),
+    ];
+    let mut c = config(2, 10.0);
+    c.signing_key = key;
+    let outcome = race(
+        &entrants,
+        &Transport::Attach(vec![p_ego.addr, p_opp.addr]),
+        &c,
+    )
+    .expect("race runs");
+    let dropped = p_ego.dropped() + p_opp.dropped();
+    let reference = evaluate(&entrants[0].pilot, Some(&entrants[1].pilot), &c.eval, true);
+    let worst = max_deviation(&outcome.episodes, &reference);
+    assert_eq!(worst, 0.0, "{worst} m");
+    let metrics: Vec<_> = reference.into_iter().map(|e| e.metrics).collect();
+    let expected = sitl::eval::Report::new(
+        &entrants[0].pilot,
+        Some(&entrants[1].pilot),
+        &c.eval,
+        &metrics,
+    );
+    assert_eq!(outcome.report, expected);
+    // 2 x 500 steps per link: 5 % of ~2,000 datagrams each way were lost and made up for.
+    assert!(dropped > 100, "the proxy dropped only {dropped} datagrams");
+    for ctl in &outcome.controllers {
+        assert!(ctl.failure.is_none(), "{ctl:?}");
+        assert!(ctl.link.resent > 20, "requests sent again: {:?}", ctl.link);
+    }
+    println!("{} ({dropped} datagrams dropped)", outcome.summary());
+}
+
 /// A UDP proxy between the simulator and one controller that passes everything through and,
 /// right after the `at`-th datagram towards the controller, injects `extra` once.
 struct Injector {

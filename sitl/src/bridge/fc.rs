@@ -14,6 +14,7 @@ use super::{
 };
 use crate::pilot::{Pilot, PilotSpec};
 use firmware_core::track::Track;
+use firmware_core::vehicle::MotorCommand;
 use mavlink::dialects::common::{COMMAND_LONG_DATA, MavCmd, MavMessage, MavResult};
 use std::collections::VecDeque;
 use std::io;
@@ -70,6 +71,10 @@ struct Flight {
     /// The simulated time of the one step taken next (ms; past `u32::MAX` once the clock
     /// has run out, when no state matches).
     next_ms: u64,
+    /// The step answered last and its answer: a repeated request for it (the simulator
+    /// retransmits when the answer is lost) is answered again from here, never stepped
+    /// twice.
+    answered: Option<(u32, MotorCommand)>,
 }
 
 /// A controller endpoint without its socket: the pilot, the link's codec and counters, and
@@ -89,6 +94,8 @@ pub struct FlightController<'p> {
     steps: u64,
     flights: u32,
     shut_down: bool,
+    /// The datagram being handled repeats the request of the step answered last.
+    repeated: bool,
 }
 
 impl<'p> FlightController<'p> {
@@ -109,6 +116,7 @@ impl<'p> FlightController<'p> {
             steps: 0,
             flights: 0,
             shut_down: false,
+            repeated: false,
         }
     }
 
@@ -119,6 +127,8 @@ impl<'p> FlightController<'p> {
         self.codec
             .decode(datagram, &mut self.stats, |f, _| frames.push(f));
         let flights = self.flights;
+        let steps = self.steps;
+        self.repeated = false;
         let mut handled = Handled::default();
         for f in frames {
             let sender = f.header.system_id;
@@ -135,6 +145,15 @@ impl<'p> FlightController<'p> {
         }
         if !self.shut_down {
             self.step(out);
+        }
+        if self.repeated && self.steps == steps && !self.shut_down {
+            // A retransmitted request for the step answered last: its answer was lost, so
+            // it goes again, once per datagram; the pilot does not step again.
+            if let Some((t, command)) = self.flight.and_then(|f| f.answered) {
+                self.codec
+                    .encode(self.own, &actuator_message(t, &command), out);
+                self.stats.resent += 1;
+            }
         }
         handled.new_flight = self.flights != flights;
         handled.shut_down = self.shut_down;
@@ -220,6 +239,7 @@ impl<'p> FlightController<'p> {
         self.flight = Some(Flight {
             started: flight,
             next_ms: u64::from(flight.first_step_ms),
+            answered: None,
         });
         self.flights += 1;
         self.pilot.reset(flight.gate);
@@ -249,6 +269,9 @@ impl<'p> FlightController<'p> {
             self.stats.wrong_system += 1;
         } else if t_ms < flight.next_ms {
             self.stats.stale += 1;
+            if own && flight.answered.is_some_and(|(a, _)| u64::from(a) == t_ms) {
+                self.repeated = true;
+            }
         } else if t_ms > flight.next_ms {
             self.stats.future += 1;
         } else {
@@ -281,6 +304,7 @@ impl<'p> FlightController<'p> {
         let command = self.pilot.command(&me.to_enu(), other.as_ref());
         self.codec
             .encode(self.own, &actuator_message(t, &command), out);
+        flight.answered = Some((t, command));
         flight.next_ms += u64::from(flight.started.step_period_ms);
         self.steps += 1;
     }
@@ -413,13 +437,25 @@ mod tests {
         assert!(reply.is_empty());
         assert_eq!(fc.summary().link.future, 2);
         ask(&mut sim, 20, &mut out);
-        assert!(matches!(
-            exchange(&mut fc, &mut sim, &out).answer,
-            Some(Answer::Command(_))
-        ));
-        // The same step again (a duplicate): stale, no answer.
-        assert_eq!(exchange(&mut fc, &mut sim, &out), Received::default());
-        assert_eq!(fc.summary().link.stale, 2);
+        let Some(Answer::Command(first)) = exchange(&mut fc, &mut sim, &out).answer else {
+            panic!("step 20 was not answered");
+        };
+        // The same step again (a retransmission after a lost answer, or a duplicate): the
+        // cached answer goes again, the pilot does not step; a simulator that already has
+        // the answer counts the copy stale, one still waiting takes it.
+        let steps = fc.summary().steps;
+        let mut reply = Vec::new();
+        fc.handle(&out, &mut reply);
+        assert_eq!(sim.handle(&reply), Received::default());
+        let mut waiting = ControllerLink::new(1, None);
+        waiting.ask_step(20, &[(1, state(0.02))], &mut Vec::new());
+        assert_eq!(
+            waiting.handle(&reply).answer,
+            Some(Answer::Command(first)),
+            "the repeated answer is the first"
+        );
+        let s = fc.summary();
+        assert_eq!((s.steps, s.link.stale, s.link.resent), (steps, 2, 1));
 
         // A new flight that starts behind the controller's clock (one a replayed or
         // forged reset had moved ahead) is taken, and its steps are answered.
@@ -437,6 +473,7 @@ mod tests {
         // The first flight's reset again: a duplicate, acknowledged, nothing else.
         let mut old = Vec::new();
         ControllerLink::new(1, None).start_flight(&flight(1, 0), &mut old);
+        reply.clear();
         assert_eq!(fc.handle(&old, &mut reply).taken, 0);
         let s = fc.summary();
         assert_eq!((s.steps, s.flights, s.link.stale), (3, 2, 3));

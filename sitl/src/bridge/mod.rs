@@ -32,6 +32,15 @@
 //!    simulator waits for every controller's answer for `t` before it steps the world; a
 //!    controller silent past the step timeout is declared failed, its motors are stopped for
 //!    the rest of the race, and the result says so.
+//!
+//!    **Retransmission.** UDP loses datagrams. A request (a new flight, a step) unanswered
+//!    for `RaceConfig::resend_after` (25 ms) is encoded again (a signed frame needs a fresh
+//!    timestamp) and sent again, until the answer comes or the step timeout passes. Answers
+//!    are idempotent: a repeated reset is acknowledged again (above); a repeated request
+//!    for the step the controller answered last is answered again from its cache
+//!    (`HIL_ACTUATOR_CONTROLS` for the same `t`, the same command), and the pilot never
+//!    steps twice. Copies the simulator no longer waits for are counted stale. Both ends
+//!    count what they sent again (`LinkStats::resent`).
 //! 4. At the end: `COMMAND_LONG` `MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN` (`param1` = 2), and
 //!    the controller exits.
 //!

@@ -67,6 +67,10 @@ pub struct LinkStats {
     /// Valid frames for a step or a flight already handled (duplicates, stragglers, replays
     /// of old resets).
     pub stale: u64,
+    /// Frames sent again: a controller's answer to a repeated request for the step it
+    /// answered last (the first answer was lost), a simulator's request when no answer came
+    /// in time (the lockstep's retransmission).
+    pub resent: u64,
     /// Valid frames stamped for a step not yet asked, or acknowledging a flight not yet
     /// started: dropped, they never move the lockstep clock.
     pub future: u64,

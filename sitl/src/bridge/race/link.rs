@@ -51,6 +51,8 @@ pub struct ControllerLink {
     /// The step asked last (µs, as answers echo it).
     asked_us: Option<u64>,
     awaited: Option<Awaited>,
+    /// Requests sent again ([`ControllerLink::note_resent`]).
+    resent: u64,
 }
 
 impl ControllerLink {
@@ -63,7 +65,13 @@ impl ControllerLink {
             flight: 0,
             asked_us: None,
             awaited: None,
+            resent: 0,
         }
+    }
+
+    /// Counts a request sent again because its answer did not come in time.
+    pub fn note_resent(&mut self) {
+        self.resent += 1;
     }
 
     /// The controller's system id.
@@ -108,6 +116,7 @@ impl ControllerLink {
     pub fn stats(&self) -> LinkStats {
         LinkStats {
             frames_sent: self.codec.frames_encoded(),
+            resent: self.resent,
             ..self.stats
         }
     }

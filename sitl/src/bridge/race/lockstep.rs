@@ -14,12 +14,23 @@ use std::io;
 use std::net::{SocketAddr, UdpSocket};
 use std::time::{Duration, Instant};
 
+/// What the simulator asked a controller last, kept to ask again when no answer comes.
+#[derive(Clone, Debug)]
+enum Request {
+    /// Start a new flight.
+    Flight(NewFlight),
+    /// The step at `t_ms`: the `(system id, state)` pairs, the controller's own last.
+    Step(u32, Vec<(u8, NedState)>),
+}
+
 /// One controller link as the simulator holds it.
 pub(super) struct Link {
     pub(super) end: ControllerLink,
     pub(super) addr: SocketAddr,
     pub(super) failure: Option<String>,
     command: MotorCommand,
+    request: Option<Request>,
+    sent_at: Instant,
 }
 
 impl Link {
@@ -42,6 +53,7 @@ pub(super) struct Lockstep<'e> {
     /// step timeout after.
     timeout: Duration,
     step_timeout: Duration,
+    resend_after: Duration,
     gcs: GroundStation,
     pace: Option<Instant>,
     unknown_sender: u64,
@@ -66,6 +78,8 @@ impl<'e> Lockstep<'e> {
                 addr: ep.addr,
                 failure: None,
                 command: MotorCommand::STOP,
+                request: None,
+                sent_at: Instant::now(),
             })
             .collect();
         let ids: Vec<u8> = entrants.iter().map(|e| e.system_id).collect();
@@ -88,6 +102,7 @@ impl<'e> Lockstep<'e> {
             // The first contact may wait for a process to load its blob.
             timeout: config.startup_timeout,
             step_timeout: config.step_timeout,
+            resend_after: config.resend_after.max(Duration::from_millis(1)),
             gcs,
             pace: config.realtime.then(Instant::now),
             unknown_sender: 0,
@@ -110,12 +125,19 @@ impl<'e> Lockstep<'e> {
     }
 
     /// Reads datagrams until no live link owes an answer or the timeout passes; a link that
-    /// still does is declared failed with `what` in the reason. A command answer is kept in
-    /// the link's `command`.
+    /// still does is declared failed with `what` in the reason. A request unanswered for
+    /// `resend_after` is sent again (lost datagrams, either way). A command answer is kept
+    /// in the link's `command`.
     fn collect(&mut self, what: &str) {
         let deadline = Instant::now() + self.timeout;
         while self.links.iter().any(Link::owes) {
             let now = Instant::now();
+            for i in 0..self.links.len() {
+                if self.links[i].owes() && now >= self.links[i].sent_at + self.resend_after {
+                    self.links[i].end.note_resent();
+                    self.ask(i);
+                }
+            }
             if now >= deadline {
                 for l in self.links.iter_mut().filter(|l| l.owes()) {
                     l.failure = Some(format!(
@@ -126,7 +148,9 @@ impl<'e> Lockstep<'e> {
                 }
                 return;
             }
-            let slice = (deadline - now).min(Duration::from_millis(20));
+            let slice = (deadline - now)
+                .min(self.resend_after)
+                .max(Duration::from_micros(100));
             if self.socket.set_read_timeout(Some(slice)).is_err() {
                 return;
             }
@@ -174,6 +198,20 @@ impl<'e> Lockstep<'e> {
         }
     }
 
+    /// Encodes link `i`'s request (anew: a signed frame carries a fresh timestamp) and
+    /// sends it.
+    fn ask(&mut self, i: usize) {
+        let mut out = Vec::with_capacity(256);
+        let l = &mut self.links[i];
+        match &l.request {
+            Some(Request::Flight(flight)) => l.end.start_flight(flight, &mut out),
+            Some(Request::Step(t, states)) => l.end.ask_step(*t, states, &mut out),
+            None => return,
+        }
+        l.sent_at = Instant::now();
+        self.send(i, &out);
+    }
+
     fn send(&mut self, i: usize, datagram: &[u8]) {
         let l = &mut self.links[i];
         if let Err(e) = self.socket.send_to(datagram, l.addr) {
@@ -188,7 +226,6 @@ impl<const N: usize> Crew<N> for Lockstep<'_> {
     fn reset(&mut self, targets: [usize; N]) {
         self.flight += 1;
         let ids: Vec<u8> = self.links.iter().map(|l| l.end.system_id()).collect();
-        let mut out = Vec::with_capacity(64);
         for (i, gate) in targets.into_iter().enumerate() {
             let flight = NewFlight {
                 number: self.flight,
@@ -204,9 +241,8 @@ impl<const N: usize> Crew<N> for Lockstep<'_> {
             let Some(l) = self.links.get_mut(i).filter(|l| l.failure.is_none()) else {
                 continue;
             };
-            out.clear();
-            l.end.start_flight(&flight, &mut out);
-            self.send(i, &out);
+            l.request = Some(Request::Flight(flight));
+            self.ask(i);
         }
         self.collect("acknowledgement of the new flight");
         // Every controller has answered once (or failed): from now on, steps are timed.
@@ -223,7 +259,6 @@ impl<const N: usize> Crew<N> for Lockstep<'_> {
         }
         let ned: Vec<NedState> = states.iter().map(NedState::from_enu).collect();
         let ids: Vec<u8> = self.links.iter().map(|l| l.end.system_id()).collect();
-        let mut out = Vec::with_capacity(256);
         for i in 0..self.links.len() {
             let l = &mut self.links[i];
             l.command = MotorCommand::STOP;
@@ -236,9 +271,8 @@ impl<const N: usize> Crew<N> for Lockstep<'_> {
                 .chain([i])
                 .map(|j| (ids[j], ned[j]))
                 .collect();
-            out.clear();
-            l.end.ask_step(t, &step, &mut out);
-            self.send(i, &out);
+            l.request = Some(Request::Step(t, step));
+            self.ask(i);
         }
         self.collect("HIL_ACTUATOR_CONTROLS for the step");
         for l in &mut self.links {

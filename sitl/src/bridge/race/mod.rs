@@ -29,6 +29,10 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+/// [`RaceConfig::resend_after`]'s default: 25 ms, many times a loopback round trip (tens of
+/// µs) and a step's inference, short enough that 5 % loss costs a few ms per step.
+pub const DEFAULT_RESEND_AFTER: Duration = Duration::from_millis(25);
+
 /// How a race is run beyond what [`EvalConfig`] says.
 #[derive(Clone, Debug)]
 pub struct RaceConfig {
@@ -36,6 +40,9 @@ pub struct RaceConfig {
     pub eval: EvalConfig,
     /// A controller silent this long within a step (or a reset) is declared failed.
     pub step_timeout: Duration,
+    /// A request (a step's states, a new flight) unanswered this long is sent again; the
+    /// controller answers a repeated step from its cache and never steps twice.
+    pub resend_after: Duration,
     /// How long a controller process may take to start.
     pub startup_timeout: Duration,
     /// MAVLink 2 signing on the controller links.
@@ -58,6 +65,7 @@ impl RaceConfig {
         Self {
             eval,
             step_timeout: Duration::from_secs(2),
+            resend_after: DEFAULT_RESEND_AFTER,
             startup_timeout: Duration::from_secs(20),
             signing_key: None,
             gcs: None,

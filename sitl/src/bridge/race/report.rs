@@ -98,6 +98,9 @@ impl RaceOutcome {
                 l.frames_sent,
                 l.dropped()
             ));
+            if l.resent > 0 {
+                s.push_str(&format!(", {} requests sent again", l.resent));
+            }
             if l.dropped() > 0 {
                 s.push_str(&format!(
                     " (malformed {}, bad crc {}, bad payload {}, unsigned {}, bad signature {}, replayed {}, wrong system {}, stale {}, future {}, ignored {})",
