@@ -21,6 +21,7 @@
 //! | [`imitation`] | DAgger: one round collector, the feed-forward and recurrent regressions |
 //! | [`warm_start`] | the warm start's stages, logs and round selection before PPO |
 //! | [`evaluation`] | the referee inside a run and how `keep_best` ranks its verdicts |
+//! | [`memory`] | a run's memory estimated from its config and checked before allocation |
 //! | [`metrics`] | `metrics.jsonl` lines, learning curves, the terminal |
 //! | [`run_dir`] | the output directory: checkpoints (atomic), resume, metrics files |
 //! | [`export`] | the only blob-header builder; actor to blob and safetensors, blob to actor |
@@ -38,6 +39,7 @@ pub mod fused;
 pub mod grads;
 pub mod guard;
 pub mod imitation;
+pub mod memory;
 pub mod metrics;
 pub mod model;
 pub mod nets;

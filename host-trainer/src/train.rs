@@ -144,6 +144,8 @@ fn start<A: Imitate, C: ValueNet>(
     dir: &RunDir,
 ) -> Result<RunState<A, C>, TrainError> {
     let arch = config.architecture()?;
+    // Refuse a run that cannot fit in memory before anything is allocated.
+    crate::memory::check(config, &arch)?;
     // Refuse an unreadable opponent before any work.
     VecEnv::new(EnvConfig {
         num_envs: 1,

@@ -405,3 +405,25 @@ fn a_corrupt_checkpoint_falls_back_to_the_previous_one() {
     assert!(e.contains("critic.bpk does not match its checksum"), "{e}");
     let _ = std::fs::remove_dir_all(&d);
 }
+
+/// Issue [faults]: a rollout that cannot fit in memory (`steps_per_env = 1e8`) is refused
+/// before anything is allocated or written, with the sizes and what to lower; before, it
+/// grew until the kernel killed the trainer.
+#[test]
+fn a_run_too_big_for_memory_is_refused_before_it_starts() {
+    let out = tmp("too_big");
+    let text = CONFIG.replace("steps_per_env = 24", "steps_per_env = 100000000");
+    assert_ne!(text, CONFIG, "smoke.toml's steps_per_env moved");
+    let config = TrainConfig::parse(&text).unwrap();
+    let started = std::time::Instant::now();
+    let e = run(&config, &options(&out, false, None))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("GiB is available"), "{e}");
+    assert!(e.contains("lower env.num_envs or ppo.steps_per_env"), "{e}");
+    assert!(started.elapsed().as_secs() < 5, "refused late");
+    assert!(
+        !out.join("checkpoints").exists(),
+        "a refused run wrote checkpoints"
+    );
+}
