@@ -367,7 +367,26 @@ fn a_corrupt_checkpoint_falls_back_to_the_previous_one() {
         assert!(text.contains(from), "{text}");
         std::fs::write(p, text.replace(from, to)).unwrap();
     };
-    for corruption in ["flipped byte", "iteration", "learning rate"] {
+    // A NaN written into a file with its checksum updated to match: only the load's own
+    // finiteness check can catch it.
+    let nan_with_checksum = |dir: &Path, file: &str| {
+        let p = dir.join(file);
+        let mut bytes = std::fs::read(&p).unwrap();
+        let n = bytes.len();
+        bytes[n - 4..].copy_from_slice(&f32::NAN.to_le_bytes());
+        std::fs::write(&p, &bytes).unwrap();
+        let state = dir.join("state.json");
+        let mut v: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&state).unwrap()).unwrap();
+        v["files"][file] = sitl::files::sha256_hex(&bytes).into();
+        std::fs::write(&state, serde_json::to_string_pretty(&v).unwrap()).unwrap();
+    };
+    for corruption in [
+        "flipped byte",
+        "iteration",
+        "learning rate",
+        "non-finite moment",
+    ] {
         let d = tmp(&format!("corrupt_{}", corruption.replace(' ', "_")));
         // Checkpoints at iterations 2 and 3 (the stop writes one).
         run(&config, &options(&d, false, Some(3))).unwrap();
@@ -379,11 +398,12 @@ fn a_corrupt_checkpoint_falls_back_to_the_previous_one() {
                 "\"iteration\": 3",
                 "\"iteration\": 999999",
             ),
-            _ => edit(
+            "learning rate" => edit(
                 &latest.join("state.json"),
                 "\"learning_rate\": ",
                 "\"learning_rate\": -",
             ),
+            _ => nan_with_checksum(&latest, "fused_adam.safetensors"),
         }
         let (it, _) = checkpoint_actor(&config, &d, &device).unwrap();
         assert_eq!(it, 2, "{corruption}: the previous checkpoint is used");
