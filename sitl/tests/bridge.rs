@@ -519,6 +519,46 @@ fn future_stamped_state_does_not_wedge_the_controller() {
     assert_eq!(max_deviation(&outcome.episodes, &reference), 0.0);
 }
 
+/// Issue [faults]: a state forged for the step the controller expects next (on an
+/// unsigned link, from anyone who can send from the simulator's address) is taken, and the
+/// controller answers it early; the real request for that step is then answered again from
+/// its cache, and the simulator takes whichever copy comes after its request. The forgery costs
+/// exactly that one step's command (the flights agree before it and part after it) and the
+/// race goes on; before retransmission the controller was declared failed.
+#[test]
+fn a_forged_state_costs_the_one_step_it_forged() {
+    let state = sitl::frames::NedState {
+        position_m: firmware_core::math::Vec3::new(0.0, 0.0, -1.0),
+        velocity_mps: Default::default(),
+        attitude: firmware_core::math::Quat::IDENTITY,
+        body_rates_radps: Default::default(),
+    };
+    let mut forged = Vec::new();
+    let mut forger = Codec::new(sitl::bridge::SIM_COMPONENT_ID, None, 0);
+    // Datagram 1 starts the first flight, datagram n >= 2 is the step at (n - 2) * 20 ms:
+    // right after datagram 101 (step 99) comes a state for step 100, t = 2,000 ms.
+    for m in sitl::bridge::state_messages(2_000, &state) {
+        forger.encode(1, &m, &mut forged);
+    }
+    let ego = fc_thread(&student(), 1, None);
+    let injector = Injector::new(ego, 101, forged);
+    let entrants = [entrant("ego", &student(), 1)];
+    let c = config(1, 5.0);
+    let outcome = race(&entrants, &Transport::Attach(vec![injector.addr]), &c).expect("race runs");
+    let ctl = &outcome.controllers[0];
+    assert!(ctl.failure.is_none(), "{}", outcome.summary());
+    // The forged step's answer came twice (early, and again from the cache): one copy was
+    // surplus, dropped as future (it came before the request) or stale (after).
+    assert_eq!(ctl.link.future + ctl.link.stale, 1, "{:?}", ctl.link);
+    let reference = evaluate(&entrants[0].pilot, None, &c.eval, true);
+    let (flown, nominal) = (&outcome.episodes[0].trace.ego_m, &reference[0].trace.ego_m);
+    assert_eq!(flown[..100], nominal[..100], "the steps before the forgery");
+    assert_ne!(
+        flown[100], nominal[100],
+        "step 100 flew the forged state's command"
+    );
+}
+
 #[test]
 fn signed_links_work_and_bad_or_missing_signatures_are_rejected() {
     let key = signing_key("overtake-sitl").unwrap();

@@ -68,8 +68,12 @@
 //!   but heartbeats `ignored`, and frames from another system id `wrong_system`.
 //!
 //! What this does not stop: on an unsigned link anyone on the host can forge the frame an
-//! end waits for. A forged state for the expected step costs one wrong answer; a forged new
-//! flight or shutdown can end that controller's race. Signing stops forgeries, and the
+//! end waits for. A forged state for the step a controller expects next is taken and
+//! answered; the real request for that step is then answered again from the controller's
+//! cache, so the forgery costs exactly that step's command (and, for a recurrent pilot, the
+//! one step of memory it fed), and the race goes on (`tests/bridge.rs`
+//! `a_forged_state_costs_the_one_step_it_forged`). A forged new flight or shutdown can end
+//! that controller's race. Signing stops forgeries, and the
 //! signing timestamps drop replays on the stream they were first sent on (not on a stream
 //! the receiver has not seen yet).
 
