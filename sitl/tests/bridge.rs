@@ -311,6 +311,8 @@ fn malformed_duplicated_reordered_and_impostor_frames_change_nothing() {
 /// datagrams overtake each other), and with probability `loss` delivered twice.
 struct LossyProxy {
     addr: SocketAddr,
+    /// The simulator's address, once it has sent.
+    sim: Arc<std::sync::Mutex<Option<SocketAddr>>>,
     stop: Arc<AtomicBool>,
     thread: Option<std::thread::JoinHandle<u64>>,
 }
@@ -325,6 +327,8 @@ impl LossyProxy {
         let addr = socket.local_addr().unwrap();
         let stop = Arc::new(AtomicBool::new(false));
         let flag = stop.clone();
+        let seen = Arc::new(std::sync::Mutex::new(None));
+        let sim_seen = seen.clone();
         let thread = std::thread::spawn(move || {
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
             let mut sim: Option<SocketAddr> = None;
@@ -343,8 +347,11 @@ impl LossyProxy {
                     continue;
                 };
                 let to_sim = from == controller;
-                if !to_sim {
+                if !to_sim && sim.is_none() {
                     sim = Some(from);
+                    if let Ok(mut s) = sim_seen.lock() {
+                        *s = sim;
+                    }
                 }
                 let Some(dest) = (if to_sim { sim } else { Some(controller) }) else {
                     continue;
@@ -363,9 +370,22 @@ impl LossyProxy {
         });
         Self {
             addr,
+            sim: seen,
             stop,
             thread: Some(thread),
         }
+    }
+
+    /// The simulator's address, waiting up to 10 s for it to send.
+    fn sim_addr(&self) -> Option<SocketAddr> {
+        let until = Instant::now() + Duration::from_secs(10);
+        while Instant::now() < until {
+            if let Some(a) = self.sim.lock().ok().and_then(|s| *s) {
+                return Some(a);
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        None
     }
 
     /// Stops the proxy and says how many datagrams it dropped.
@@ -426,6 +446,89 @@ fn a_lossy_jittery_network_gives_sitl_evals_race() {
         assert!(ctl.link.resent > 20, "requests sent again: {:?}", ctl.link);
     }
     println!("{} ({dropped} datagrams dropped)", outcome.summary());
+}
+
+/// Issue [faults]: another local socket floods both ends of both links as fast as it can
+/// (garbage, and well-formed unsigned answers and states for every step), and the race
+/// flies exactly `sitl eval`'s race: each end's socket is connected to its peer, so the
+/// kernel drops the flood before it can fill the buffer the answers wait in. The proxies
+/// in the path only tell the flood where the simulator's sockets are.
+#[test]
+fn a_local_flood_leaves_the_race_unchanged() {
+    let ego = fc_thread(&student(), 1, None);
+    let opp = fc_thread("baseline", 2, None);
+    let (p_ego, p_opp) = (
+        Arc::new(LossyProxy::new(ego, 0.0, 1)),
+        Arc::new(LossyProxy::new(opp, 0.0, 2)),
+    );
+    let proxies = (p_ego.clone(), p_opp.clone());
+    let stop = Arc::new(AtomicBool::new(false));
+    let flag = stop.clone();
+    let flood = std::thread::spawn(move || {
+        // The controllers and the simulator's two sockets (not the proxies: they stand in
+        // for the network, and forward whatever reaches them).
+        let mut targets = vec![ego, opp];
+        targets.extend(proxies.0.sim_addr());
+        targets.extend(proxies.1.sim_addr());
+        assert_eq!(targets.len(), 4, "the simulator never sent");
+        let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
+        let mut codec = Codec::new(AUTOPILOT_COMPONENT_ID, None, 0);
+        let mut sent = 0u64;
+        let started = Instant::now();
+        let mut t = 0u32;
+        while !flag.load(Ordering::Relaxed) {
+            let mut frame = Vec::new();
+            codec.encode(
+                1 + (t % 2) as u8,
+                &actuator_message(t, &Default::default()),
+                &mut frame,
+            );
+            let state = sitl::frames::NedState {
+                position_m: firmware_core::math::Vec3::new(0.0, 0.0, -1.0),
+                velocity_mps: Default::default(),
+                attitude: firmware_core::math::Quat::IDENTITY,
+                body_rates_radps: Default::default(),
+            };
+            for m in sitl::bridge::state_messages(t, &state) {
+                codec.encode(1 + (t % 2) as u8, &m, &mut frame);
+            }
+            for to in &targets {
+                for d in [&frame[..], b"\xfd\x09garbage"] {
+                    if socket.send_to(d, to).is_ok() {
+                        sent += 1;
+                    }
+                }
+            }
+            t = (t + 20) % 20_000;
+        }
+        sent as f64 / started.elapsed().as_secs_f64()
+    });
+    let entrants = [
+        entrant("ego", &student(), 1),
+        entrant("opponent", "baseline", 2),
+    ];
+    let c = config(1, 10.0);
+    let outcome = race(
+        &entrants,
+        &Transport::Attach(vec![p_ego.addr, p_opp.addr]),
+        &c,
+    )
+    .expect("race runs");
+    stop.store(true, Ordering::Relaxed);
+    let rate = flood.join().unwrap();
+    let reference = evaluate(&entrants[0].pilot, Some(&entrants[1].pilot), &c.eval, true);
+    assert_eq!(max_deviation(&outcome.episodes, &reference), 0.0);
+    for ctl in &outcome.controllers {
+        assert!(ctl.failure.is_none(), "{ctl:?}");
+        // Not one flood datagram reached the simulator's sockets: the kernel dropped them.
+        let l = &ctl.link;
+        assert_eq!((l.malformed, l.wrong_system, l.future), (0, 0, 0), "{l:?}");
+    }
+    println!("{}flood: {rate:.0} datagrams/s", outcome.summary());
+    assert!(
+        rate > 20_000.0,
+        "the flood was too weak to mean anything: {rate:.0}/s"
+    );
 }
 
 /// A UDP proxy between the simulator and one controller that passes everything through and,

@@ -314,8 +314,9 @@ impl<'p> FlightController<'p> {
 /// Errors are socket errors only; dropped frames are counted in the summary.
 pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
     let mut fc = FlightController::new(config);
-    // Where the current flight came from: replies go there, so that an answer a stray
-    // datagram completes still reaches the simulator.
+    // Where the first flight came from. The socket is then connected to it: replies go
+    // there, and the kernel delivers that address's datagrams only, so no other local
+    // socket can flood the controller off the race (issue [faults]).
     let mut sim: Option<SocketAddr> = None;
     let mut last_taken = Instant::now();
     let mut last_heartbeat: Option<Instant> = None;
@@ -324,13 +325,11 @@ pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
     socket.set_read_timeout(Some(Duration::from_millis(100)))?;
     loop {
         // A heartbeat once a second to whoever drives us, as an autopilot does.
-        if let Some(peer) = sim {
-            if last_heartbeat.is_none_or(|t| t.elapsed() >= Duration::from_secs(1)) {
-                out.clear();
-                fc.heartbeat(&mut out);
-                socket.send_to(&out, peer)?;
-                last_heartbeat = Some(Instant::now());
-            }
+        if sim.is_some() && last_heartbeat.is_none_or(|t| t.elapsed() >= Duration::from_secs(1)) {
+            out.clear();
+            fc.heartbeat(&mut out);
+            send(socket, &out)?;
+            last_heartbeat = Some(Instant::now());
         }
         let (n, from) = match socket.recv_from(&mut buf) {
             Ok(r) => r,
@@ -354,17 +353,31 @@ pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
         if handled.taken > 0 {
             last_taken = Instant::now();
         }
-        if handled.new_flight {
+        if handled.new_flight && sim.is_none() {
+            socket.connect(from)?;
             sim = Some(from);
         }
         if !out.is_empty() {
-            socket.send_to(&out, sim.unwrap_or(from))?;
+            if sim.is_some() {
+                send(socket, &out)?;
+            } else {
+                socket.send_to(&out, from)?;
+            }
         }
         if handled.shut_down {
             break;
         }
     }
     Ok(fc.summary())
+}
+
+/// Sends on the connected socket; a peer not listening (an ICMP error from an earlier
+/// datagram) is not an error here: the simulator retransmits or has gone.
+fn send(socket: &UdpSocket, datagram: &[u8]) -> io::Result<()> {
+    match socket.send(datagram) {
+        Err(e) if e.kind() == io::ErrorKind::ConnectionRefused => Ok(()),
+        r => r.map(|_| ()),
+    }
 }
 
 #[cfg(test)]

@@ -44,6 +44,12 @@
 //! 4. At the end: `COMMAND_LONG` `MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN` (`param1` = 2), and
 //!    the controller exits.
 //!
+//! **Sockets.** The simulator gives each link a UDP socket of its own, connected to its
+//! controller's address, and a controller connects its socket to the simulator's address
+//! at the first flight: the kernel then delivers each end its peer's datagrams only, so
+//! another local socket cannot flood either end (its datagrams are dropped before they can
+//! fill the receive buffer the answers wait in).
+//!
 //! With a signing key both ends sign every frame and drop unsigned or wrongly signed ones
 //! ([`wire`]). A ground station link ([`gcs`]) streams the race as a vehicle would.
 //!

@@ -41,8 +41,13 @@ impl Link {
 }
 
 /// The simulator's side of a lockstep race: a [`Crew`] whose pilots are MAVLink endpoints.
+///
+/// Each link has a socket of its own, connected to its controller's address: the kernel
+/// delivers it that controller's datagrams only, so no other local socket, however fast it
+/// sends, can fill the buffer the answers wait in (issue [faults]: a flood used to drop both
+/// controllers' answers).
 pub(super) struct Lockstep<'e> {
-    socket: UdpSocket,
+    sockets: Vec<UdpSocket>,
     links: Vec<Link>,
     endpoints: &'e mut [Endpoint],
     dt_ms: u32,
@@ -56,7 +61,6 @@ pub(super) struct Lockstep<'e> {
     resend_after: Duration,
     gcs: GroundStation,
     pace: Option<Instant>,
-    unknown_sender: u64,
     buf: Vec<u8>,
 }
 
@@ -69,7 +73,15 @@ impl<'e> Lockstep<'e> {
         config: &RaceConfig,
         world: &World,
     ) -> Result<(Self, Instant), RaceError> {
-        let socket = UdpSocket::bind("127.0.0.1:0")?;
+        let sockets = endpoints
+            .iter()
+            .map(|ep| {
+                let s = UdpSocket::bind("127.0.0.1:0")?;
+                s.connect(ep.addr)?;
+                s.set_nonblocking(true)?;
+                Ok(s)
+            })
+            .collect::<io::Result<Vec<_>>>()?;
         let links = entrants
             .iter()
             .zip(endpoints.iter())
@@ -92,7 +104,7 @@ impl<'e> Lockstep<'e> {
         )?;
         let started = Instant::now();
         let lockstep = Self {
-            socket,
+            sockets,
             links,
             endpoints,
             dt_ms: (world.dt_s * 1000.0).round() as u32,
@@ -105,15 +117,14 @@ impl<'e> Lockstep<'e> {
             resend_after: config.resend_after.max(Duration::from_millis(1)),
             gcs,
             pace: config.realtime.then(Instant::now),
-            unknown_sender: 0,
             buf: vec![0u8; 65_536],
         };
         Ok((lockstep, started))
     }
 
-    /// Sends each controller the shutdown command and hands back the links, the telemetry
-    /// log and the count of frames from unknown senders.
-    pub(super) fn shut_down(mut self) -> (Vec<Link>, Vec<u8>, u64) {
+    /// Sends each controller the shutdown command and hands back the links and the
+    /// telemetry log.
+    pub(super) fn shut_down(mut self) -> (Vec<Link>, Vec<u8>) {
         let mut out = Vec::new();
         for i in 0..self.links.len() {
             out.clear();
@@ -121,7 +132,7 @@ impl<'e> Lockstep<'e> {
             self.send(i, &out);
         }
         let tlog = self.gcs.take_tlog();
-        (self.links, tlog, self.unknown_sender)
+        (self.links, tlog)
     }
 
     /// Reads datagrams until no live link owes an answer or the timeout passes; a link that
@@ -148,36 +159,56 @@ impl<'e> Lockstep<'e> {
                 }
                 return;
             }
+            // Wake for the deadline or the next resend, whichever is first.
+            let next_resend = self
+                .links
+                .iter()
+                .filter(|l| l.owes())
+                .map(|l| (l.sent_at + self.resend_after).saturating_duration_since(now))
+                .min()
+                .unwrap_or(self.resend_after);
             let slice = (deadline - now)
-                .min(self.resend_after)
+                .min(next_resend)
                 .max(Duration::from_micros(100));
-            if self.socket.set_read_timeout(Some(slice)).is_err() {
-                return;
-            }
-            match self.socket.recv_from(&mut self.buf) {
-                Ok((n, from)) => {
-                    let Some(link) = self.links.iter_mut().find(|l| l.addr == from) else {
-                        self.unknown_sender += 1;
-                        continue;
-                    };
-                    if let Some(Answer::Command(c)) = link.end.handle(&self.buf[..n]).answer {
-                        link.command = c;
+            match readable(&self.sockets, slice) {
+                Ok(ready) if ready.iter().any(|&r| r) => {
+                    for (i, _) in ready.iter().enumerate().filter(|(_, r)| **r) {
+                        self.drain(i);
                     }
                 }
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        io::ErrorKind::WouldBlock
-                            | io::ErrorKind::TimedOut
-                            | io::ErrorKind::ConnectionRefused
-                    ) =>
-                {
-                    self.check_processes();
-                }
+                Ok(_) => self.check_processes(),
                 Err(e) => {
                     for l in self.links.iter_mut().filter(|l| l.owes()) {
                         l.failure = Some(format!("simulator socket error: {e}"));
                     }
+                }
+            }
+        }
+    }
+
+    /// Takes every datagram waiting on link `i`'s socket; a command answer is kept in the
+    /// link's `command`.
+    fn drain(&mut self, i: usize) {
+        loop {
+            match self.sockets[i].recv(&mut self.buf) {
+                Ok(n) => {
+                    let l = &mut self.links[i];
+                    if let Some(Answer::Command(c)) = l.end.handle(&self.buf[..n]).answer {
+                        l.command = c;
+                    }
+                }
+                // Linux reports an earlier datagram's ICMP "port unreachable" (a controller
+                // not listening yet) on a connected socket: not a datagram, not fatal.
+                Err(e) if e.kind() == io::ErrorKind::ConnectionRefused => {
+                    self.check_processes();
+                }
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => return,
+                Err(e) => {
+                    let l = &mut self.links[i];
+                    if l.owes() {
+                        l.failure = Some(format!("simulator socket error: {e}"));
+                    }
+                    return;
                 }
             }
         }
@@ -214,7 +245,7 @@ impl<'e> Lockstep<'e> {
 
     fn send(&mut self, i: usize, datagram: &[u8]) {
         let l = &mut self.links[i];
-        if let Err(e) = self.socket.send_to(datagram, l.addr) {
+        if let Err(e) = self.sockets[i].send(datagram) {
             if e.kind() != io::ErrorKind::ConnectionRefused {
                 l.failure = Some(format!("cannot send to {}: {e}", l.addr));
             }
@@ -289,5 +320,58 @@ impl<const N: usize> Crew<N> for Lockstep<'_> {
         self.clock_ms += self.dt_ms;
         self.step += 1;
         core::array::from_fn(|i| self.links.get(i).map_or(MotorCommand::STOP, |l| l.command))
+    }
+}
+
+/// Which of `sockets` have a datagram waiting, after at most `timeout` (`poll(2)`).
+#[cfg(unix)]
+fn readable(sockets: &[UdpSocket], timeout: Duration) -> io::Result<Vec<bool>> {
+    use std::os::fd::AsRawFd;
+    let mut fds: Vec<libc::pollfd> = sockets
+        .iter()
+        .map(|s| libc::pollfd {
+            fd: s.as_raw_fd(),
+            events: libc::POLLIN,
+            revents: 0,
+        })
+        .collect();
+    // Round up: a wait of 0 ms would spin.
+    let ms = timeout.as_micros().div_ceil(1000).min(i32::MAX as u128) as i32;
+    // SAFETY: `fds` is a valid, exclusively borrowed array of `fds.len()` pollfd structs
+    // for the duration of the call.
+    let n = unsafe { libc::poll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, ms) };
+    if n < 0 {
+        let e = io::Error::last_os_error();
+        if e.kind() == io::ErrorKind::Interrupted {
+            return Ok(vec![false; sockets.len()]);
+        }
+        return Err(e);
+    }
+    // An error condition (e.g. ICMP port unreachable) is read as a datagram would be: the
+    // recv reports it.
+    Ok(fds
+        .iter()
+        .map(|f| f.revents & (libc::POLLIN | libc::POLLERR) != 0)
+        .collect())
+}
+
+/// Which of `sockets` have a datagram waiting, after at most `timeout`: without `poll(2)`,
+/// by sleeping in slices of 100 µs between non-blocking peeks.
+#[cfg(not(unix))]
+fn readable(sockets: &[UdpSocket], timeout: Duration) -> io::Result<Vec<bool>> {
+    let until = Instant::now() + timeout;
+    let mut byte = [0u8; 1];
+    loop {
+        let ready: Vec<bool> = sockets
+            .iter()
+            .map(|s| match s.peek(&mut byte) {
+                Ok(_) => true,
+                Err(e) => e.kind() != io::ErrorKind::WouldBlock,
+            })
+            .collect();
+        if ready.iter().any(|&r| r) || Instant::now() >= until {
+            return Ok(ready);
+        }
+        std::thread::sleep(Duration::from_micros(100));
     }
 }

@@ -154,7 +154,7 @@ pub fn race(
     let (mut lockstep, started) = Lockstep::new(entrants, &mut endpoints, config, &world)?;
     let episodes = fly(&world, &mut lockstep, config, race_mode);
     let wall_s = started.elapsed().as_secs_f64();
-    let (links, tlog, unknown_sender_frames) = lockstep.shut_down();
+    let (links, tlog) = lockstep.shut_down();
     wait_for(&mut endpoints);
     let metrics: Vec<_> = episodes.iter().map(|e| e.metrics.clone()).collect();
     let opponent = entrants.get(1).map(|e| &e.pilot);
@@ -163,7 +163,6 @@ pub fn race(
         report,
         episodes,
         controllers: controller_reports(entrants, links, transport),
-        unknown_sender_frames,
         wall_s,
         tlog,
     })

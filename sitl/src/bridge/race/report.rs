@@ -33,8 +33,6 @@ pub struct RaceOutcome {
     pub episodes: Vec<Episode>,
     /// Each controller's link and fate.
     pub controllers: Vec<ControllerReport>,
-    /// Frames from addresses that are no controller's.
-    pub unknown_sender_frames: u64,
     /// Wall-clock seconds of the race (without starting the controllers).
     pub wall_s: f64,
     /// The telemetry log (empty unless asked for).
@@ -46,7 +44,6 @@ struct RaceJson<'a> {
     #[serde(flatten)]
     report: &'a Report,
     controllers: &'a [ControllerReport],
-    unknown_sender_frames: u64,
     wall_s: f64,
     realtime_factor: f64,
 }
@@ -62,13 +59,12 @@ impl RaceOutcome {
         self.controllers.iter().any(|c| c.failure.is_some())
     }
 
-    /// The report as JSON: `sitl eval`'s keys plus `controllers`, `unknown_sender_frames`,
-    /// `wall_s` and `realtime_factor`.
+    /// The report as JSON: `sitl eval`'s keys plus `controllers`, `wall_s` and
+    /// `realtime_factor`.
     pub fn to_json(&self) -> String {
         serde_json::to_string_pretty(&RaceJson {
             report: &self.report,
             controllers: &self.controllers,
-            unknown_sender_frames: self.unknown_sender_frames,
             wall_s: self.wall_s,
             realtime_factor: self.realtime_factor(),
         })
@@ -120,12 +116,6 @@ impl RaceOutcome {
                 Some(why) => s.push_str(&format!("\n           FAILED: {why}\n")),
                 None => s.push('\n'),
             }
-        }
-        if self.unknown_sender_frames > 0 {
-            s.push_str(&format!(
-                "  {} datagrams from unknown senders ignored\n",
-                self.unknown_sender_frames
-            ));
         }
         s
     }
