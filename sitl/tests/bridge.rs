@@ -187,14 +187,46 @@ fn a_killed_controller_is_reported_and_the_race_finishes() {
     assert!(outcome.to_json().contains("\"failure\": \"silent"));
 }
 
+/// A test's helper thread, told to stop and joined when dropped (or by [`Background::finish`]).
+struct Background<T> {
+    stop: Arc<AtomicBool>,
+    thread: Option<std::thread::JoinHandle<T>>,
+}
+
+impl<T: Send + 'static> Background<T> {
+    /// Runs `work` on a thread; it should return once the flag it is given is set.
+    fn spawn(work: impl FnOnce(Arc<AtomicBool>) -> T + Send + 'static) -> Self {
+        let stop = Arc::new(AtomicBool::new(false));
+        let flag = stop.clone();
+        Self {
+            stop,
+            thread: Some(std::thread::spawn(move || work(flag))),
+        }
+    }
+
+    /// Stops the thread and returns what it returned.
+    fn finish(mut self) -> Option<T> {
+        self.stop.store(true, Ordering::Relaxed);
+        self.thread.take().and_then(|t| t.join().ok())
+    }
+}
+
+impl<T> Drop for Background<T> {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
 /// A UDP proxy between the simulator and one controller that makes a bad network: every
 /// datagram is delivered, then delivered again after the next one (duplicated and
 /// reordered), with garbage and bit-flipped copies in both directions and, towards the
 /// simulator, well-formed answers from a wrong system id.
 struct Proxy {
     addr: SocketAddr,
-    stop: Arc<AtomicBool>,
-    thread: Option<std::thread::JoinHandle<()>>,
+    _worker: Background<()>,
 }
 
 impl Proxy {
@@ -204,9 +236,7 @@ impl Proxy {
             .set_read_timeout(Some(Duration::from_millis(20)))
             .unwrap();
         let addr = socket.local_addr().unwrap();
-        let stop = Arc::new(AtomicBool::new(false));
-        let flag = stop.clone();
-        let thread = std::thread::spawn(move || {
+        let worker = Background::spawn(move |flag| {
             let mut sim: Option<SocketAddr> = None;
             let mut held: [Option<Vec<u8>>; 2] = [None, None];
             let mut impostor = Codec::new(AUTOPILOT_COMPONENT_ID, None, 0);
@@ -249,17 +279,7 @@ impl Proxy {
         });
         Self {
             addr,
-            stop,
-            thread: Some(thread),
-        }
-    }
-}
-
-impl Drop for Proxy {
-    fn drop(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
+            _worker: worker,
         }
     }
 }
@@ -313,8 +333,7 @@ struct LossyProxy {
     addr: SocketAddr,
     /// The simulator's address, once it has sent.
     sim: Arc<std::sync::Mutex<Option<SocketAddr>>>,
-    stop: Arc<AtomicBool>,
-    thread: Option<std::thread::JoinHandle<u64>>,
+    worker: Background<u64>,
 }
 
 impl LossyProxy {
@@ -325,11 +344,9 @@ impl LossyProxy {
             .set_read_timeout(Some(Duration::from_micros(500)))
             .unwrap();
         let addr = socket.local_addr().unwrap();
-        let stop = Arc::new(AtomicBool::new(false));
-        let flag = stop.clone();
         let seen = Arc::new(std::sync::Mutex::new(None));
         let sim_seen = seen.clone();
-        let thread = std::thread::spawn(move || {
+        let worker = Background::spawn(move |flag| {
             let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
             let mut sim: Option<SocketAddr> = None;
             // (due, destination, datagram), delivered in order of due time.
@@ -371,8 +388,7 @@ impl LossyProxy {
         Self {
             addr,
             sim: seen,
-            stop,
-            thread: Some(thread),
+            worker,
         }
     }
 
@@ -389,18 +405,8 @@ impl LossyProxy {
     }
 
     /// Stops the proxy and says how many datagrams it dropped.
-    fn dropped(mut self) -> u64 {
-        self.stop.store(true, Ordering::Relaxed);
-        self.thread.take().map_or(0, |t| t.join().unwrap_or(0))
-    }
-}
-
-impl Drop for LossyProxy {
-    fn drop(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
-        }
+    fn dropped(self) -> u64 {
+        self.worker.finish().unwrap_or(0)
     }
 }
 
@@ -462,9 +468,7 @@ fn a_local_flood_leaves_the_race_unchanged() {
         Arc::new(LossyProxy::new(opp, 0.0, 2)),
     );
     let proxies = (p_ego.clone(), p_opp.clone());
-    let stop = Arc::new(AtomicBool::new(false));
-    let flag = stop.clone();
-    let flood = std::thread::spawn(move || {
+    let flood = Background::spawn(move |flag| {
         // The controllers and the simulator's two sockets (not the proxies: they stand in
         // for the network, and forward whatever reaches them).
         let mut targets = vec![ego, opp];
@@ -514,8 +518,7 @@ fn a_local_flood_leaves_the_race_unchanged() {
         &c,
     )
     .expect("race runs");
-    stop.store(true, Ordering::Relaxed);
-    let rate = flood.join().unwrap();
+    let rate = flood.finish().unwrap();
     let reference = evaluate(&entrants[0].pilot, Some(&entrants[1].pilot), &c.eval, true);
     assert_eq!(max_deviation(&outcome.episodes, &reference), 0.0);
     for ctl in &outcome.controllers {
@@ -535,8 +538,7 @@ fn a_local_flood_leaves_the_race_unchanged() {
 /// right after the `at`-th datagram towards the controller, injects `extra` once.
 struct Injector {
     addr: SocketAddr,
-    stop: Arc<AtomicBool>,
-    thread: Option<std::thread::JoinHandle<()>>,
+    _worker: Background<()>,
 }
 
 impl Injector {
@@ -546,9 +548,7 @@ impl Injector {
             .set_read_timeout(Some(Duration::from_millis(20)))
             .unwrap();
         let addr = socket.local_addr().unwrap();
-        let stop = Arc::new(AtomicBool::new(false));
-        let flag = stop.clone();
-        let thread = std::thread::spawn(move || {
+        let worker = Background::spawn(move |flag| {
             let mut sim: Option<SocketAddr> = None;
             let mut buf = vec![0u8; 65_536];
             let mut towards_controller = 0u64;
@@ -572,17 +572,7 @@ impl Injector {
         });
         Self {
             addr,
-            stop,
-            thread: Some(thread),
-        }
-    }
-}
-
-impl Drop for Injector {
-    fn drop(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
-        if let Some(t) = self.thread.take() {
-            let _ = t.join();
+            _worker: worker,
         }
     }
 }

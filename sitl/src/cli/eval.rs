@@ -1,6 +1,6 @@
 //! `sitl eval`: a pilot's Table-1 row over many seeded episodes, in-process.
 
-use super::{Contest, load, load_opponent, write};
+use super::{Contest, write};
 use clap::Args;
 use sitl::eval::{Report, evaluate};
 use sitl::pilot::PilotSpec;
@@ -28,14 +28,7 @@ pub struct EvalArgs {
 pub fn run(args: EvalArgs) -> Result<(), String> {
     let contest = &args.contest;
     let preset = contest.common.preset;
-    let ego_spec = contest.required_ego()?;
-    let ego = load(ego_spec, &preset, "--ego")?;
-    let opponent = load_opponent(contest.opponent.as_deref(), &preset)?;
-    if opponent.is_none() && ego.needs_opponent() {
-        return Err(format!(
-            "--ego {ego_spec} observes an opponent; race it with --opponent <blob|baseline>"
-        ));
-    }
+    let (ego, opponent) = contest.pilots()?;
     let config = contest.eval_config();
     let started = std::time::Instant::now();
     let record = args.plot.is_some() || contest.scoring.trace.is_some();

@@ -51,6 +51,21 @@ impl Contest {
             .ok_or_else(|| "--ego is required".to_string())
     }
 
+    /// The ego and the opponent, loaded for the preset; an ego that observes an opponent
+    /// must be given one.
+    pub fn pilots(&self) -> Result<(PilotSpec, Option<PilotSpec>), String> {
+        let preset = self.common.preset;
+        let ego_spec = self.required_ego()?;
+        let ego = load(ego_spec, &preset, "--ego")?;
+        let opponent = load_opponent(self.opponent.as_deref(), &preset)?;
+        if opponent.is_none() && ego.needs_opponent() {
+            return Err(format!(
+                "--ego {ego_spec} observes an opponent; race it with --opponent <blob|baseline>"
+            ));
+        }
+        Ok((ego, opponent))
+    }
+
     /// The episodes to fly: preset and seconds of [`Common`], the rest of [`Scoring`].
     pub fn eval_config(&self) -> EvalConfig {
         EvalConfig {

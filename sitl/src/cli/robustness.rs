@@ -1,6 +1,6 @@
 //! `sitl robustness`: a pilot's scores under the standard perturbations, f32 and int8.
 
-use super::{Contest, load, load_opponent, write};
+use super::{Contest, write};
 use clap::Args;
 use firmware_core::blob::{AlignedBytes, Blob, WeightDtype, convert_bytes};
 use sitl::pilot::PilotSpec;
@@ -29,15 +29,8 @@ pub fn run(args: RobustnessArgs) -> Result<(), String> {
             "--jitter and --perturb do not apply here: the sweep flies its own levels".into(),
         );
     }
-    let preset = contest.common.preset;
     let ego_spec = contest.required_ego()?;
-    let ego = load(ego_spec, &preset, "--ego")?;
-    let opponent = load_opponent(contest.opponent.as_deref(), &preset)?;
-    if opponent.is_none() && ego.needs_opponent() {
-        return Err(format!(
-            "--ego {ego_spec} observes an opponent; race it with --opponent <blob|baseline>"
-        ));
-    }
+    let (ego, opponent) = contest.pilots()?;
     let int8 = match &ego {
         PilotSpec::Blob { bytes, .. } => {
             let is_f32 =
