@@ -1,5 +1,5 @@
 //! What a run will hold in memory, estimated from its config before anything is allocated,
-//! and checked against what the machine has (issue [faults]: `steps_per_env = 1e8` used to
+//! and checked against what the machine has (issue "faults": `steps_per_env = 1e8` used to
 //! grow until the kernel killed the trainer).
 //!
 //! The estimate counts the buffers that grow with the config, with generous factors, plus a

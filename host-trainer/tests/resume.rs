@@ -426,7 +426,7 @@ fn a_corrupt_checkpoint_falls_back_to_the_previous_one() {
     let _ = std::fs::remove_dir_all(&d);
 }
 
-/// Issue [faults]: a rollout that cannot fit in memory (`steps_per_env = 1e8`) is refused
+/// Issue "faults": a rollout that cannot fit in memory (`steps_per_env = 1e8`) is refused
 /// before anything is allocated or written, with the sizes and what to lower; before, it
 /// grew until the kernel killed the trainer.
 #[test]

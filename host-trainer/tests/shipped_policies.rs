@@ -55,7 +55,7 @@ fn the_stage1_policy_is_the_shipped_config_from_scratch_and_flies_as_recorded() 
     assert!(lap <= 7.8, "best lap {lap} s");
 }
 
-/// `policies/stage1_robust.blob` (issue [robust]) is stage1.toml's recipe trained with the
+/// `policies/stage1_robust.blob` (issue "robust") is stage1.toml's recipe trained with the
 /// ego's latency, motor lag, thrust, mass and sensor noise randomised
 /// (`configs/experiments/stage1_robust.toml`, `env.randomize`): the committed config and
 /// seed, the validation's actor of the finished run; it flies the referee's time trial as

@@ -1,4 +1,4 @@
-//! The robustness sweep (`sitl robustness`, issue [robust]): a pilot flown under the
+//! The robustness sweep (`sitl robustness`, issue "robust"): a pilot flown under the
 //! standard perturbations of [`crate::perturb`], f32 and its int8 conversion, and for each
 //! kind of perturbation the largest level it survives.
 //!

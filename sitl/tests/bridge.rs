@@ -410,7 +410,7 @@ impl LossyProxy {
     }
 }
 
-/// Issue [faults]: under 5 % loss, duplication, reordering and 0-20 ms of jitter in both
+/// Issue "faults": under 5 % loss, duplication, reordering and 0-20 ms of jitter in both
 /// directions, on signed links, a race gives exactly `sitl eval`'s report and trajectories:
 /// lost requests and lost answers are sent again, and a repeated step is answered from the
 /// controller's cache, never stepped twice (a pilot stepped twice would advance its
@@ -454,7 +454,7 @@ fn a_lossy_jittery_network_gives_sitl_evals_race() {
     println!("{} ({dropped} datagrams dropped)", outcome.summary());
 }
 
-/// Issue [faults]: another local socket floods both ends of both links as fast as it can
+/// Issue "faults": another local socket floods both ends of both links as fast as it can
 /// (garbage, and well-formed unsigned answers and states for every step), and the race
 /// flies exactly `sitl eval`'s race: each end's socket is connected to its peer, so the
 /// kernel drops the flood before it can fill the buffer the answers wait in. The proxies
@@ -612,7 +612,7 @@ fn future_stamped_state_does_not_wedge_the_controller() {
     assert_eq!(max_deviation(&outcome.episodes, &reference), 0.0);
 }
 
-/// Issue [faults]: a state forged for the step the controller expects next (on an
+/// Issue "faults": a state forged for the step the controller expects next (on an
 /// unsigned link, from anyone who can send from the simulator's address) is taken, and the
 /// controller answers it early; the real request for that step is then answered again from
 /// its cache, and the simulator takes whichever copy comes after its request. The forgery costs

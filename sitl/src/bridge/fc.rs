@@ -316,7 +316,7 @@ pub fn serve(socket: &UdpSocket, config: &FcConfig) -> io::Result<FcSummary> {
     let mut fc = FlightController::new(config);
     // Where the first flight came from. The socket is then connected to it: replies go
     // there, and the kernel delivers that address's datagrams only, so no other local
-    // socket can flood the controller off the race (issue [faults]).
+    // socket can flood the controller off the race (issue "faults").
     let mut sim: Option<SocketAddr> = None;
     let mut last_taken = Instant::now();
     let mut last_heartbeat: Option<Instant> = None;

@@ -44,7 +44,7 @@ impl Link {
 ///
 /// Each link has a socket of its own, connected to its controller's address: the kernel
 /// delivers it that controller's datagrams only, so no other local socket, however fast it
-/// sends, can fill the buffer the answers wait in (issue [faults]: a flood used to drop both
+/// sends, can fill the buffer the answers wait in (issue "faults": a flood used to drop both
 /// controllers' answers).
 pub(super) struct Lockstep<'e> {
     sockets: Vec<UdpSocket>,
