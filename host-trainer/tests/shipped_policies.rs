@@ -86,9 +86,7 @@ fn the_robust_stage1_policy_is_its_config_and_survives_latency_as_recorded() {
     )
     .unwrap();
     let f32_spec = PilotSpec::from_blob(name, &raw).unwrap();
-    let int8 =
-        firmware_core::blob::convert_bytes(&raw, firmware_core::blob::WeightDtype::I8).unwrap();
-    let int8_spec = PilotSpec::from_blob("int8", &int8).unwrap();
+    let int8_spec = f32_spec.int8("int8").unwrap().expect("an f32 blob");
     let levels = sitl::robustness::table_levels();
     for row in ["+ latency 1 step (20 ms)", "+ all of the above"] {
         let level = levels.iter().find(|l| l.name == row).unwrap();

@@ -39,14 +39,6 @@ impl Span {
         Self { lo: v, hi: v }
     }
 
-    /// `v ± fraction · v`: a symmetric relative band around `v`.
-    pub fn around(v: f32, fraction: f32) -> Self {
-        Self {
-            lo: v * (1.0 - fraction),
-            hi: v * (1.0 + fraction),
-        }
-    }
-
     fn is_fixed_at(&self, v: f32) -> bool {
         self.lo == v && self.hi == v
     }
@@ -315,10 +307,8 @@ impl Perturbation {
     ///
     /// The result is validated ([`Perturbation::validate`]).
     pub fn parse_onto(mut self, spec: &str) -> Result<Self, String> {
-        for item in spec.split(',').map(str::trim).filter(|s| !s.is_empty()) {
-            let (key, value) = item
-                .split_once('=')
-                .ok_or_else(|| format!("'{item}': expected KEY=VALUE"))?;
+        for item in key_values(spec, "") {
+            let (key, value) = item?;
             let span = || parse_span(key, value);
             let single = || -> Result<f32, String> {
                 let s = span()?;
@@ -381,10 +371,8 @@ impl Perturbation {
             self.jitter = StartJitter::STANDARD;
         } else {
             let mut j = StartJitter::default();
-            for item in spec.split(',').map(str::trim).filter(|s| !s.is_empty()) {
-                let (key, value) = item
-                    .split_once('=')
-                    .ok_or_else(|| format!("--jitter '{item}': expected KEY=VALUE"))?;
+            for item in key_values(spec, "--jitter ") {
+                let (key, value) = item?;
                 let v: f32 = value
                     .trim()
                     .parse()
@@ -518,11 +506,6 @@ impl PerturbSpec {
     pub fn value(&self) -> &Perturbation {
         &self.value
     }
-
-    /// The text as written.
-    pub fn text(&self) -> &str {
-        &self.text
-    }
 }
 
 impl Serialize for PerturbSpec {
@@ -536,6 +519,21 @@ impl<'de> Deserialize<'de> for PerturbSpec {
         let text = String::deserialize(d)?;
         Self::parse(&text).map_err(serde::de::Error::custom)
     }
+}
+
+/// The comma-separated `KEY=VALUE` items of `spec` (empty items skipped); an item without
+/// `=` is an error, prefixed with `what`.
+fn key_values<'a>(
+    spec: &'a str,
+    what: &'a str,
+) -> impl Iterator<Item = Result<(&'a str, &'a str), String>> + 'a {
+    spec.split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(move |item| {
+            item.split_once('=')
+                .ok_or_else(|| format!("{what}'{item}': expected KEY=VALUE"))
+        })
 }
 
 fn parse_span(key: &str, value: &str) -> Result<Span, String> {

@@ -134,6 +134,25 @@ impl PilotSpec {
         })
     }
 
+    /// The int8 conversion of an f32 blob (`firmware_core::blob::convert_bytes`), labelled
+    /// `name`; `None` for the baseline and for a blob already in int8.
+    pub fn int8(&self, name: &str) -> Result<Option<Self>, String> {
+        let Self::Blob { bytes, .. } = self else {
+            return Ok(None);
+        };
+        let f32_blob = Blob::parse(bytes.as_bytes())
+            .is_ok_and(|b| b.header().dtype == firmware_core::blob::WeightDtype::F32);
+        if !f32_blob {
+            return Ok(None);
+        }
+        let raw = firmware_core::blob::convert_bytes(
+            bytes.as_bytes(),
+            firmware_core::blob::WeightDtype::I8,
+        )
+        .map_err(|e| format!("int8 conversion: {e}"))?;
+        Self::from_blob(name, &raw).map(Some)
+    }
+
     /// A short name for reports: "baseline" or the blob's path and provenance name.
     pub fn describe(&self) -> String {
         match self {

@@ -188,11 +188,7 @@ impl World {
         drones: &mut [Drone; N],
         commands: &[MotorCommand; N],
     ) -> [DroneStep; N] {
-        let from = drones.each_ref().map(Drone::position_m);
-        for (d, c) in drones.iter_mut().zip(commands) {
-            d.body.step(&self.preset, c, self.dt_s);
-        }
-        self.judge(drones, &from)
+        self.step_airframes(drones, commands, &[self.preset; N])
     }
 
     /// [`World::step`] with drone `i` flying airframe `presets[i]` instead of the world's

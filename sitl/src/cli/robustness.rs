@@ -2,8 +2,6 @@
 
 use super::{Contest, write};
 use clap::Args;
-use firmware_core::blob::{AlignedBytes, Blob, WeightDtype, convert_bytes};
-use sitl::pilot::PilotSpec;
 
 /// The arguments of `sitl robustness`.
 #[derive(Args)]
@@ -31,23 +29,9 @@ pub fn run(args: RobustnessArgs) -> Result<(), String> {
     }
     let ego_spec = contest.required_ego()?;
     let (ego, opponent) = contest.pilots()?;
-    let int8 = match &ego {
-        PilotSpec::Blob { bytes, .. } => {
-            let is_f32 =
-                Blob::parse(bytes.as_bytes()).is_ok_and(|b| b.header().dtype == WeightDtype::F32);
-            if is_f32 {
-                let raw = convert_bytes(bytes.as_bytes(), WeightDtype::I8)
-                    .map_err(|e| format!("--ego {ego_spec}: int8 conversion: {e}"))?;
-                Some(PilotSpec::from_blob(
-                    &format!("{ego_spec} (int8)"),
-                    AlignedBytes::new(&raw).as_bytes(),
-                )?)
-            } else {
-                None
-            }
-        }
-        PilotSpec::Baseline(_) => None,
-    };
+    let int8 = ego
+        .int8(&format!("{ego_spec} (int8)"))
+        .map_err(|e| format!("--ego {ego_spec}: {e}"))?;
     let config = contest.eval_config();
     let started = std::time::Instant::now();
     let levels = sitl::robustness::table_levels().len()

@@ -29,7 +29,7 @@ use firmware_core::nn::{ACTION_DIM, LANES};
 use firmware_core::observation::{Observation, ObservationError, ObservationSpec};
 use firmware_core::policy::Policy;
 use firmware_core::track::CrashRules;
-use firmware_core::vehicle::{ActionMap, MotorCommand};
+use firmware_core::vehicle::{ActionMap, MotorCommand, VehicleState};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
@@ -656,22 +656,12 @@ fn observe(
     slot: &mut Slot,
     out: &mut [f32],
 ) {
-    let racing = slot.opponent.is_some();
-    let [d, opp] = &slot.drones;
+    let own = slot.drones[0].body.state;
     let own = match &mut slot.perturbed {
-        Some(p) => p.sense(d.body.state),
-        None => d.body.state,
+        Some(p) => p.sense(own),
+        None => own,
     };
-    let seen = observe_folded(
-        spec,
-        fold,
-        &world.track,
-        &own,
-        d.progress.target,
-        &slot.previous_action,
-        racing.then_some(&opp.body.state),
-    );
-    match seen {
+    match ego_observation_of(world, spec, fold, slot, &own, slot.opponent.is_some()) {
         Ok((o, _)) => out.copy_from_slice(o.as_slice()),
         // Only a diverged state fails, and a diverged state is a crash that was respawned.
         Err(_) => out.fill(0.0),
@@ -687,12 +677,24 @@ fn ego_observation(
     slot: &Slot,
     racing: bool,
 ) -> Result<(Observation, bool), ObservationError> {
+    ego_observation_of(world, spec, fold, slot, &slot.drones[0].body.state, racing)
+}
+
+/// [`ego_observation`] with the ego's state as `own` (its sensors' reading of it).
+fn ego_observation_of(
+    world: &World,
+    spec: &ObservationSpec,
+    fold: Option<&TrackMirror>,
+    slot: &Slot,
+    own: &VehicleState,
+    racing: bool,
+) -> Result<(Observation, bool), ObservationError> {
     let [d, opp] = &slot.drones;
     observe_folded(
         spec,
         fold,
         &world.track,
-        &d.body.state,
+        own,
         d.progress.target,
         &slot.previous_action,
         racing.then_some(&opp.body.state),

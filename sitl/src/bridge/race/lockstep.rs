@@ -31,6 +31,8 @@ pub(super) struct Link {
     command: MotorCommand,
     request: Option<Request>,
     sent_at: Instant,
+    /// The link's own socket, connected to the controller's address (`addr`).
+    socket: UdpSocket,
 }
 
 impl Link {
@@ -42,12 +44,11 @@ impl Link {
 
 /// The simulator's side of a lockstep race: a [`Crew`] whose pilots are MAVLink endpoints.
 ///
-/// Each link has a socket of its own, connected to its controller's address: the kernel
+/// Each link has a socket of its own ([`Link`]), connected to its controller's address: the kernel
 /// delivers it that controller's datagrams only, so no other local socket, however fast it
 /// sends, can fill the buffer the answers wait in (issue "faults": a flood used to drop both
 /// controllers' answers).
 pub(super) struct Lockstep<'e> {
-    sockets: Vec<UdpSocket>,
     links: Vec<Link>,
     endpoints: &'e mut [Endpoint],
     dt_ms: u32,
@@ -73,27 +74,24 @@ impl<'e> Lockstep<'e> {
         config: &RaceConfig,
         world: &World,
     ) -> Result<(Self, Instant), RaceError> {
-        let sockets = endpoints
-            .iter()
-            .map(|ep| {
-                let s = UdpSocket::bind("127.0.0.1:0")?;
-                s.connect(ep.addr)?;
-                s.set_nonblocking(true)?;
-                Ok(s)
-            })
-            .collect::<io::Result<Vec<_>>>()?;
         let links = entrants
             .iter()
             .zip(endpoints.iter())
-            .map(|(e, ep)| Link {
-                end: ControllerLink::new(e.system_id, config.signing_key),
-                addr: ep.addr,
-                failure: None,
-                command: MotorCommand::STOP,
-                request: None,
-                sent_at: Instant::now(),
+            .map(|(e, ep)| {
+                let socket = UdpSocket::bind("127.0.0.1:0")?;
+                socket.connect(ep.addr)?;
+                socket.set_nonblocking(true)?;
+                Ok(Link {
+                    end: ControllerLink::new(e.system_id, config.signing_key),
+                    addr: ep.addr,
+                    failure: None,
+                    command: MotorCommand::STOP,
+                    request: None,
+                    sent_at: Instant::now(),
+                    socket,
+                })
             })
-            .collect();
+            .collect::<io::Result<Vec<_>>>()?;
         let ids: Vec<u8> = entrants.iter().map(|e| e.system_id).collect();
         let gcs = GroundStation::new(
             &ids,
@@ -104,7 +102,6 @@ impl<'e> Lockstep<'e> {
         )?;
         let started = Instant::now();
         let lockstep = Self {
-            sockets,
             links,
             endpoints,
             dt_ms: (world.dt_s * 1000.0).round() as u32,
@@ -170,7 +167,7 @@ impl<'e> Lockstep<'e> {
             let slice = (deadline - now)
                 .min(next_resend)
                 .max(Duration::from_micros(100));
-            match readable(&self.sockets, slice) {
+            match readable(&self.links, slice) {
                 Ok(ready) if ready.iter().any(|&r| r) => {
                     for (i, _) in ready.iter().enumerate().filter(|(_, r)| **r) {
                         self.drain(i);
@@ -190,9 +187,9 @@ impl<'e> Lockstep<'e> {
     /// link's `command`.
     fn drain(&mut self, i: usize) {
         loop {
-            match self.sockets[i].recv(&mut self.buf) {
+            let l = &mut self.links[i];
+            match l.socket.recv(&mut self.buf) {
                 Ok(n) => {
-                    let l = &mut self.links[i];
                     if let Some(Answer::Command(c)) = l.end.handle(&self.buf[..n]).answer {
                         l.command = c;
                     }
@@ -204,7 +201,6 @@ impl<'e> Lockstep<'e> {
                 }
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => return,
                 Err(e) => {
-                    let l = &mut self.links[i];
                     if l.owes() {
                         l.failure = Some(format!("simulator socket error: {e}"));
                     }
@@ -245,7 +241,7 @@ impl<'e> Lockstep<'e> {
 
     fn send(&mut self, i: usize, datagram: &[u8]) {
         let l = &mut self.links[i];
-        if let Err(e) = self.sockets[i].send(datagram) {
+        if let Err(e) = l.socket.send(datagram) {
             if e.kind() != io::ErrorKind::ConnectionRefused {
                 l.failure = Some(format!("cannot send to {}: {e}", l.addr));
             }
@@ -323,14 +319,14 @@ impl<const N: usize> Crew<N> for Lockstep<'_> {
     }
 }
 
-/// Which of `sockets` have a datagram waiting, after at most `timeout` (`poll(2)`).
+/// Which of `links`' sockets have a datagram waiting, after at most `timeout` (`poll(2)`).
 #[cfg(unix)]
-fn readable(sockets: &[UdpSocket], timeout: Duration) -> io::Result<Vec<bool>> {
+fn readable(links: &[Link], timeout: Duration) -> io::Result<Vec<bool>> {
     use std::os::fd::AsRawFd;
-    let mut fds: Vec<libc::pollfd> = sockets
+    let mut fds: Vec<libc::pollfd> = links
         .iter()
-        .map(|s| libc::pollfd {
-            fd: s.as_raw_fd(),
+        .map(|l| libc::pollfd {
+            fd: l.socket.as_raw_fd(),
             events: libc::POLLIN,
             revents: 0,
         })
@@ -343,7 +339,7 @@ fn readable(sockets: &[UdpSocket], timeout: Duration) -> io::Result<Vec<bool>> {
     if n < 0 {
         let e = io::Error::last_os_error();
         if e.kind() == io::ErrorKind::Interrupted {
-            return Ok(vec![false; sockets.len()]);
+            return Ok(vec![false; links.len()]);
         }
         return Err(e);
     }
@@ -355,16 +351,16 @@ fn readable(sockets: &[UdpSocket], timeout: Duration) -> io::Result<Vec<bool>> {
         .collect())
 }
 
-/// Which of `sockets` have a datagram waiting, after at most `timeout`: without `poll(2)`,
+/// Which of `links`' sockets have a datagram waiting, after at most `timeout`: without `poll(2)`,
 /// by sleeping in slices of 100 µs between non-blocking peeks.
 #[cfg(not(unix))]
-fn readable(sockets: &[UdpSocket], timeout: Duration) -> io::Result<Vec<bool>> {
+fn readable(links: &[Link], timeout: Duration) -> io::Result<Vec<bool>> {
     let until = Instant::now() + timeout;
     let mut byte = [0u8; 1];
     loop {
-        let ready: Vec<bool> = sockets
+        let ready: Vec<bool> = links
             .iter()
-            .map(|s| match s.peek(&mut byte) {
+            .map(|l| match l.socket.peek(&mut byte) {
                 Ok(_) => true,
                 Err(e) => e.kind() != io::ErrorKind::WouldBlock,
             })
