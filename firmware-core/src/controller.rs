@@ -15,6 +15,7 @@ use crate::observation::{MAX_OBSERVATION_DIM, Observation, ObservationError, Obs
 use crate::policy::{Policy, PolicyState};
 use crate::track::{GateEvent, GateProgress, Track};
 use crate::vehicle::{ActionMap, MotorCommand, VehicleState};
+use serde::{Deserialize, Serialize};
 
 /// A step begun by `Controller::begin_step`: the observation to infer on, and what
 /// `finish_step` needs besides the policy's output.
@@ -418,6 +419,47 @@ impl<'w> Controller<'w> {
     pub fn fault_count(&self) -> u32 {
         self.fault_count
     }
+
+    /// What the controller carries from one step to the next, but the recurrent state
+    /// ([`Self::policy_state`]): a simulator's snapshot, with [`Self::restore`].
+    pub fn memory(&self) -> ControllerMemory {
+        ControllerMemory {
+            progress: self.progress,
+            previous_action: self.previous_action,
+            previous_position: self.previous_position,
+            fault_count: self.fault_count,
+        }
+    }
+
+    /// Puts back what [`Self::memory`] and [`Self::policy_state`] read, so that the next
+    /// step is the one the snapshotted controller would have taken. `false`, changing
+    /// nothing, when the recurrent state is not this policy's shape or the target gate is
+    /// not on the track.
+    pub fn restore(&mut self, memory: &ControllerMemory, policy_state: &[f32]) -> bool {
+        if memory.progress.target >= self.track.len() || policy_state.len() != self.state.flat_len()
+        {
+            return false;
+        }
+        self.state.read_flat(policy_state);
+        self.progress = memory.progress;
+        self.previous_action = memory.previous_action;
+        self.previous_position = memory.previous_position;
+        self.fault_count = memory.fault_count;
+        true
+    }
+}
+
+/// A controller's step-to-step bookkeeping ([`Controller::memory`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ControllerMemory {
+    /// The gate it flies to and the gates passed.
+    pub progress: GateProgress,
+    /// The action of the last step (the policy's next input).
+    pub previous_action: [f32; ACTION_DIM],
+    /// The position of the last step (for gate crossings).
+    pub previous_position: Option<Vec3>,
+    /// Steps that fell back to the fail-safe.
+    pub fault_count: u32,
 }
 
 #[cfg(test)]

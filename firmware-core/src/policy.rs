@@ -320,6 +320,73 @@ pub const POLICY_G_MEMORY_BYTES: usize =
     core::mem::size_of::<PolicyState>() + PolicyG::SCRATCH_BYTES;
 
 impl PolicyState {
+    /// Number of values in [`Self::write_flat`]'s order: per layer, h then c.
+    pub fn flat_len(&self) -> usize {
+        2 * 128 * self.layers().len()
+    }
+
+    /// The state's values, per layer h then c (a simulator's snapshot of a controller).
+    /// `false`, writing nothing, unless `out` holds exactly [`Self::flat_len`] values.
+    pub fn write_flat(&self, out: &mut [f32]) -> bool {
+        if out.len() != self.flat_len() {
+            return false;
+        }
+        for (layer, chunk) in self.layers().iter().zip(out.chunks_exact_mut(256)) {
+            let (h, c) = chunk.split_at_mut(128);
+            h.copy_from_slice(&layer.h);
+            c.copy_from_slice(&layer.c);
+        }
+        true
+    }
+
+    /// Restores the values [`Self::write_flat`] wrote, into a state of the same shape.
+    /// `false`, changing nothing, when `values` has another length.
+    pub fn read_flat(&mut self, values: &[f32]) -> bool {
+        if values.len() != self.flat_len() {
+            return false;
+        }
+        for (layer, chunk) in self.layers_mut().into_iter().zip(values.chunks_exact(256)) {
+            let (h, c) = chunk.split_at(128);
+            layer.h.copy_from_slice(h);
+            layer.c.copy_from_slice(c);
+        }
+        true
+    }
+
+    fn layers(&self) -> heapless::Vec<&crate::nn::LstmLayerState<128>, 2> {
+        let mut out = heapless::Vec::new();
+        match self {
+            Self::Stateless => {}
+            Self::Lstm1(s) => {
+                let _ = out.push(&s.first);
+            }
+            Self::Lstm2(s) => {
+                let _ = out.push(&s.first);
+                for d in &s.deep {
+                    let _ = out.push(d);
+                }
+            }
+        }
+        out
+    }
+
+    fn layers_mut(&mut self) -> heapless::Vec<&mut crate::nn::LstmLayerState<128>, 2> {
+        let mut out = heapless::Vec::new();
+        match self {
+            Self::Stateless => {}
+            Self::Lstm1(s) => {
+                let _ = out.push(&mut s.first);
+            }
+            Self::Lstm2(s) => {
+                let _ = out.push(&mut s.first);
+                for d in &mut s.deep {
+                    let _ = out.push(d);
+                }
+            }
+        }
+        out
+    }
+
     /// Zeroes the recurrent state in place (no temporary copy on the stack).
     pub fn clear(&mut self) {
         let layers: &mut [crate::nn::LstmLayerState<128>] = match self {

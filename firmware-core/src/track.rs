@@ -417,7 +417,7 @@ impl ArcLength {
 }
 
 /// Next-gate bookkeeping of one drone: the gate it targets and how many it has passed.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct GateProgress {
     /// Index of the gate the drone must pass next.
     pub target: usize,

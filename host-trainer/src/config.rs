@@ -128,6 +128,13 @@ pub struct WarmStart {
     /// directory), to refine an earlier student; absent: the run's fresh initialisation.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub student: Option<String>,
+    /// The student starts as the teacher itself: `teacher_blob` (a feed-forward time-trial
+    /// policy) embedded in this row's network so that it computes the same actions
+    /// ([`crate::transplant`]; the units it does not use keep the seed's initialisation).
+    /// Instead of `student`; with `rounds = 0` the run starts PPO from the teacher's own
+    /// flight, a warm start from an RL-trained policy that is exact rather than fitted.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub transplant: bool,
     /// DAgger rounds; the teacher's share of the executed actions falls linearly from 1 to
     /// 0 over the first half. 0 with a `student`: the student as given (refereed, then the
     /// critic-only iterations).
@@ -482,6 +489,7 @@ impl WarmStart {
                 quantization_aware: r.quantization_aware,
                 teacher_share_start: 0.0,
                 student: None,
+                transplant: false,
                 refine: Vec::new(),
                 ..self.clone()
             });

@@ -112,3 +112,34 @@ pub fn actor_from_blob<A: PolicyNet>(
     A::from_payload(arch, &blob.dequantized(), &std, device)
         .ok_or_else(|| TrainError::Checkpoint(format!("{}: weights do not fit", path.display())))
 }
+
+/// The actor `fresh` with the feed-forward time-trial blob at `path` embedded in it
+/// ([`crate::transplant`]): it flies as the blob does, observing through the config's spec,
+/// whose own terms (scales, clip, fold) must be the blob's.
+pub fn actor_transplanted_from<A: PolicyNet>(
+    path: &Path,
+    fresh: &A,
+    arch: &Architecture,
+    config: &TrainConfig,
+    device: &Device,
+) -> Result<A, TrainError> {
+    let raw = std::fs::read(path).map_err(io(path))?;
+    let bytes = firmware_core::blob::AlignedBytes::new(&raw);
+    let refused = |reason: String| TrainError::Blob {
+        what: format!("warm_start.teacher_blob '{}'", path.display()),
+        reason,
+    };
+    let blob =
+        firmware_core::blob::Blob::parse(bytes.as_bytes()).map_err(|e| refused(e.to_string()))?;
+    crate::transplant::spec_fits(&blob.header().observation, &config.observation_spec())
+        .map_err(|e| refused(e.to_string()))?;
+    let payload = crate::transplant::transplant(
+        &blob.header().architecture,
+        &blob.dequantized(),
+        arch,
+        &fresh.payload(),
+    )
+    .map_err(|e| refused(e.to_string()))?;
+    A::from_payload(arch, &payload, &fresh.std(), device)
+        .ok_or_else(|| refused("the transplanted weights do not fit".into()))
+}

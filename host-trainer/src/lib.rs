@@ -20,6 +20,7 @@
 //! | [`guard`] | the optional line search of each update on the measured return |
 //! | [`imitation`] | DAgger: one round collector, the feed-forward and recurrent regressions |
 //! | [`warm_start`] | the warm start's stages, logs and round selection before PPO |
+//! | [`transplant`] | a time-trial MLP embedded exactly in a larger row's network (`warm_start.transplant`) |
 //! | [`evaluation`] | the referee inside a run and how `keep_best` ranks its verdicts |
 //! | [`memory`] | a run's memory estimated from its config and checked before allocation |
 //! | [`metrics`] | `metrics.jsonl` lines, learning curves, the terminal |
@@ -51,5 +52,6 @@ pub mod rslrl;
 pub mod run_dir;
 pub mod setup;
 pub mod train;
+pub mod transplant;
 pub mod update;
 pub mod warm_start;

@@ -222,7 +222,7 @@ pub fn push_flat_state(state: &PolicyState, out: &mut Vec<f32>) {
 }
 
 /// The returns and lengths of the episodes that ended recently, for the logs.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EpisodeLog {
     /// The running return of every env's current episode.
     running_return: Vec<f64>,

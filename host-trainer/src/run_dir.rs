@@ -24,11 +24,16 @@
 //!   iterations, preset, config hash), `<name>.safetensors` (the actor with RSL-RL's names)
 //!   and `learning_curves.svg`.
 //!
-//! **Resume.** The networks, Adam states, learning rate, iteration, metrics and the
-//! generators of the action noise and of the minibatches are restored. The environments are
-//! not stored: a resumed run respawns them (with a seed derived from the iteration and random
-//! initial episode lengths), so its trajectory differs from an uninterrupted run's from that
-//! point, its learning state does not.
+//! **Resume is bit for bit.** The networks, Adam states, learning rate, iteration, metrics
+//! and the generators of the action noise and of the minibatches are restored, and so is the
+//! rollout's world: every env's state ([`sitl::env::EnvSnapshot`]: drones, opponent,
+//! generators, randomisation, replayed passes, observations), the policy's recurrent state in
+//! every env, the critic's carried state and the episode log, in `loop.json`
+//! ([`LoopSnapshot`]). A resumed run is then the uninterrupted run, weights and metrics to the
+//! last bit (tested, `tests/resume.rs`). A checkpoint written before the loop was stored
+//! (before the first iteration of an invocation, or by an older build) has no `loop.json`:
+//! the envs are then respawned from a seed derived from the iteration, as every invocation's
+//! start does, and the run says so.
 
 use crate::config::TrainConfig;
 use crate::error::{TrainError, io};
@@ -47,6 +52,24 @@ use serde::{Deserialize, Serialize};
 use sitl::files::write_atomically;
 use std::path::{Path, PathBuf};
 
+/// The rollout's world between two iterations (`loop.json` in a checkpoint): what a resumed
+/// run needs to step on as the uninterrupted one would.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LoopSnapshot {
+    /// Every env's state.
+    pub env: sitl::env::EnvSnapshot,
+    /// The policy's recurrent state in every env, flat (`envs × width`; empty when
+    /// feed-forward).
+    pub policy_memory: Vec<f32>,
+    /// The critic's state carried into the next window (empty when feed-forward or zero).
+    pub critic_h0: Vec<f32>,
+    /// The returns and lengths of the episodes running and recently ended.
+    pub episodes: crate::rollout::EpisodeLog,
+}
+
+/// The file of a checkpoint that holds its [`LoopSnapshot`].
+const LOOP_FILE: &str = "loop.json";
+
 /// Everything that evolves during a run, and what a checkpoint keeps of it.
 pub(crate) struct RunState<A = Actor, C = Critic> {
     /// The networks, their Adam states and the learning rate.
@@ -63,6 +86,9 @@ pub(crate) struct RunState<A = Actor, C = Critic> {
     pub shuffle_rng: ChaCha8Rng,
     /// Every iteration's metrics so far.
     pub history: Vec<IterationMetrics>,
+    /// The rollout's world the checkpoint this state was loaded from kept (taken by the
+    /// iteration loop when it starts); `None` for a fresh state.
+    pub resumed_loop: Option<LoopSnapshot>,
 }
 
 /// What `checkpoints/iter_N/state.json` holds besides the networks.
@@ -222,6 +248,17 @@ impl RunDir {
         s: &RunState<A, C>,
         config: &TrainConfig,
     ) -> Result<(), TrainError> {
+        self.save_checkpoint_with_loop(s, config, None)
+    }
+
+    /// [`Self::save_checkpoint`] with the rollout's world (`loop.json`), so that a resume
+    /// from it is bit for bit.
+    pub fn save_checkpoint_with_loop<A: PolicyNet, C: ValueNet>(
+        &self,
+        s: &RunState<A, C>,
+        config: &TrainConfig,
+        world: Option<&LoopSnapshot>,
+    ) -> Result<(), TrainError> {
         let name = format!("iter_{:06}", s.iteration);
         let dir = self.checkpoints.join(&name);
         if dir.exists() {
@@ -254,9 +291,15 @@ impl RunDir {
             let p = dir.join(FUSED_ADAM);
             write_atomically(&p, &bytes).map_err(io(&p))?;
         }
+        if let Some(world) = world {
+            let json = serde_json::to_vec(world)
+                .map_err(|e| TrainError::Checkpoint(format!("{name}/{LOOP_FILE}: {e}")))?;
+            let p = dir.join(LOOP_FILE);
+            write_atomically(&p, &json).map_err(io(&p))?;
+        }
         // The files' checksums, read back from the disk (what a resume will read).
         let mut files = std::collections::BTreeMap::new();
-        for f in CHECKPOINT_FILES.iter().chain([&FUSED_ADAM]) {
+        for f in CHECKPOINT_FILES.iter().chain([&FUSED_ADAM, &LOOP_FILE]) {
             let p = dir.join(f);
             if p.exists() {
                 let bytes = std::fs::read(&p).map_err(io(&p))?;
@@ -506,6 +549,20 @@ impl RunDir {
         let history = self
             .read_metrics(state.iteration)
             .map_err(Unusable::Refused)?;
+        let loop_file = dir.join(LOOP_FILE);
+        // A fork continues the parent's flights only under the parent's environment; under
+        // another it starts its envs afresh, as every fork did before `loop.json`.
+        let same_world = !any_config
+            || TrainConfig::load(&self.file("config.toml")).is_ok_and(|c| c.env == config.env);
+        let resumed_loop = if loop_file.exists() && same_world {
+            let text = std::fs::read(&loop_file).map_err(|e| bad(format!("{LOOP_FILE}: {e}")))?;
+            Some(
+                serde_json::from_slice::<LoopSnapshot>(&text)
+                    .map_err(|e| bad(format!("{LOOP_FILE}: {e}")))?,
+            )
+        } else {
+            None
+        };
         let run_state = RunState {
             learner,
             iteration: state.iteration,
@@ -514,6 +571,7 @@ impl RunDir {
             noise_rng,
             shuffle_rng,
             history,
+            resumed_loop,
         };
         Ok((run_state, state.config_hash))
     }

@@ -7,7 +7,7 @@
 use crate::config::{PpoConfig, TrainConfig};
 use crate::error::TrainError;
 use crate::evaluation::{best_evaluation, keep_best_prefers, referee_eval, selection_eval};
-use crate::export::{actor_blob, actor_from_blob, actor_safetensors};
+use crate::export::{actor_blob, actor_from_blob, actor_safetensors, actor_transplanted_from};
 use crate::guard::guard_update;
 use crate::imitation::Imitate;
 use crate::metrics::{Console, IterationMetrics, lap_text};
@@ -17,7 +17,7 @@ use crate::ppo::Learner;
 use crate::recurrent::{RecurrentActor, RecurrentCritic};
 use crate::rng::{generator, init_rng};
 use crate::rollout::{EpisodeLog, Rollout, collect_rollout};
-use crate::run_dir::{RunDir, RunState};
+use crate::run_dir::{LoopSnapshot, RunDir, RunState};
 use crate::warm_start::warm_start;
 use burn::tensor::Device;
 use firmware_core::policy::{Architecture, Policy};
@@ -98,7 +98,7 @@ fn run_networks<A: Imitate, C: ValueNet>(
     let mut state = start::<A, C>(config, options, &dir)?;
     dir.write_config(config)?;
     dir.start_metrics(&state.history, state.iteration)?;
-    let mut lp = Loop::new(config, &state)?;
+    let mut lp = Loop::new(config, &mut state)?;
     let total = config.run.iterations;
     let stop_at = options
         .stop_after
@@ -128,7 +128,7 @@ fn run_networks<A: Imitate, C: ValueNet>(
             dir.write_curves(&config.run.name, &state.history)?;
         }
         if state.iteration % config.run.checkpoint_every == 0 || state.iteration == stop_at {
-            dir.save_checkpoint(&state, config)?;
+            dir.save_checkpoint_with_loop(&state, config, Some(&lp.snapshot()))?;
         }
     }
     console.bar().finish_and_clear();
@@ -202,6 +202,7 @@ fn start<A: Imitate, C: ValueNet>(
         noise_rng: generator(config.run.seed, u64::MAX - 1),
         shuffle_rng: generator(config.run.seed, u64::MAX - 2),
         history: Vec::new(),
+        resumed_loop: None,
     };
     if let Some(path) = &options.init_actor {
         let actor = actor_from_blob(path, &arch, config, &device)?;
@@ -215,12 +216,25 @@ fn start<A: Imitate, C: ValueNet>(
         dir.create()?;
         dir.save_checkpoint(&state, config)?;
     } else if let Some(warm) = &config.warm_start {
-        let student = match &warm.student {
-            Some(path) => {
+        let student = match (&warm.student, &warm.teacher_blob) {
+            (Some(path), _) => {
                 println!("the warm start refines the student {path}");
                 actor_from_blob(std::path::Path::new(path), &arch, config, &device)?
             }
-            None => state.learner.actor.clone(),
+            (None, Some(teacher)) if warm.transplant => {
+                println!(
+                    "the student is {teacher} transplanted into row {}'s network",
+                    config.run.row
+                );
+                actor_transplanted_from(
+                    std::path::Path::new(teacher),
+                    &state.learner.actor,
+                    &arch,
+                    config,
+                    &device,
+                )?
+            }
+            _ => state.learner.actor.clone(),
         };
         warm_start(
             &mut state,
@@ -245,19 +259,84 @@ struct Loop {
 }
 
 impl Loop {
-    fn new<A, C>(config: &TrainConfig, state: &RunState<A, C>) -> Result<Self, TrainError> {
+    /// The loop of a fresh state: envs spawned from a seed derived from the iteration; of a
+    /// resumed one: the world its checkpoint kept ([`LoopSnapshot`]), bit for bit.
+    fn new<A: PolicyNet, C>(
+        config: &TrainConfig,
+        state: &mut RunState<A, C>,
+    ) -> Result<Self, TrainError> {
         let env_seed = config
             .run
             .seed
             .wrapping_add(u64::from(state.iteration).wrapping_mul(0x9e37_79b9_7f4a_7c15));
-        let env = config.make_env(env_seed)?;
-        let rollout = Rollout::new(env.num_envs(), env.obs_dim());
+        let mut env = config.make_env(env_seed)?;
+        let mut rollout = Rollout::new(env.num_envs(), env.obs_dim());
+        let mut episodes = EpisodeLog::new(env.num_envs());
+        let arch = config.architecture()?;
+        match state.resumed_loop.take() {
+            Some(world) => {
+                let bad = |why: String| {
+                    TrainError::Checkpoint(format!("loop.json does not fit this run: {why}"))
+                };
+                env.restore(&world.env).map_err(|e| bad(e.to_string()))?;
+                let policy_payload = state.learner.actor.payload();
+                let policy = Policy::from_payload(&arch, &policy_payload)
+                    .map_err(|e| bad(format!("the actor: {e}")))?;
+                let width = policy.initial_state().flat_len();
+                let n = env.num_envs();
+                if world.policy_memory.len() != n * width {
+                    return Err(bad(format!(
+                        "{} recurrent values, {n} envs of {width} expected",
+                        world.policy_memory.len()
+                    )));
+                }
+                rollout.memory = vec![policy.initial_state(); n];
+                if width > 0 {
+                    for (m, v) in rollout
+                        .memory
+                        .iter_mut()
+                        .zip(world.policy_memory.chunks_exact(width))
+                    {
+                        m.read_flat(v);
+                    }
+                }
+                rollout.critic_h0 = world.critic_h0;
+                episodes = world.episodes;
+            }
+            None if state.iteration > 0 => println!(
+                "note: the checkpoint keeps no env state (loop.json): the envs are respawned, so the run is not bit for bit the uninterrupted one from iteration {}",
+                state.iteration
+            ),
+            None => {}
+        }
         Ok(Self {
-            arch: config.architecture()?,
+            arch,
             rollout,
-            episodes: EpisodeLog::new(env.num_envs()),
+            episodes,
             env,
         })
+    }
+
+    /// The rollout's world now, for a checkpoint.
+    fn snapshot(&self) -> LoopSnapshot {
+        let width = self.rollout.memory.first().map_or(0, |m| m.flat_len());
+        let mut policy_memory = vec![0.0; width * self.rollout.memory.len()];
+        if width > 0 {
+            for (m, out) in self
+                .rollout
+                .memory
+                .iter()
+                .zip(policy_memory.chunks_exact_mut(width))
+            {
+                m.write_flat(out);
+            }
+        }
+        LoopSnapshot {
+            env: self.env.snapshot(),
+            policy_memory,
+            critic_h0: self.rollout.critic_h0.clone(),
+            episodes: self.episodes.clone(),
+        }
     }
 }
 

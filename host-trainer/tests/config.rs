@@ -316,6 +316,38 @@ fn the_mirror_fold_is_checked_hashed_and_reaches_the_spec() {
     assert!(e.contains("fold_mirror") && e.contains("warm start"), "{e}");
 }
 
+/// `warm_start.transplant`: it needs its teacher and no student of its own, and unlike DAgger
+/// rounds it may fold (the transplant observes through the teacher's own folded pipeline).
+#[test]
+fn a_transplant_needs_its_teacher_alone_and_may_fold() {
+    let text = include_str!("../configs/experiments/race_transplant.toml");
+    let ok = TrainConfig::parse(text).unwrap();
+    let warm = ok.warm_start.as_ref().unwrap();
+    assert!(warm.transplant && ok.env.fold_mirror && warm.rounds == 0);
+    for (bad, says) in [
+        (
+            text.replacen("teacher_blob = \"policies/stage1.blob\"\n", "", 1),
+            "teacher_blob",
+        ),
+        (
+            text.replacen(
+                "transplant = true\n",
+                "transplant = true\nstudent = \"x.blob\"\n",
+                1,
+            ),
+            "student",
+        ),
+        (
+            text.replacen("rounds = 0\n", "rounds = 2\n", 1),
+            "fold_mirror",
+        ),
+        (text.replacen("transplant = true\n", "", 1), "rounds"),
+    ] {
+        let e = TrainConfig::parse(&bad).unwrap_err().to_string();
+        assert!(e.contains(says), "{says}: {e}");
+    }
+}
+
 /// Every committed config (the shipped pipelines in `configs/` and each policy's own in
 /// `policies/*/config.toml`) round-trips through sitl's environment schema: parsed,
 /// written back and parsed again it is the same config with the same hash, and its

@@ -232,6 +232,7 @@ fn teacher_warm_start() -> host_trainer::config::WarmStart {
             env!("CARGO_MANIFEST_DIR")
         )),
         student: None,
+        transplant: false,
         rounds: 4,
         steps_per_env: 60,
         epochs: 3,

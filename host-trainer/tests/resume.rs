@@ -9,7 +9,7 @@ use host_trainer::config::{Selection, TrainConfig};
 use host_trainer::fused::FusedOptim;
 use host_trainer::metrics::IterationMetrics;
 use host_trainer::nets::PolicyNet;
-use host_trainer::run_dir::checkpoint_actor;
+use host_trainer::run_dir::{checkpoint_actor, checkpoint_blob};
 use host_trainer::train::{RunOptions, run};
 use std::path::{Path, PathBuf};
 
@@ -119,6 +119,78 @@ fn a_killed_run_resumes_from_its_last_checkpoint() {
     }
 }
 
+/// The metrics of a run without its wall-clock fields (which differ between any two runs).
+fn learning_record(out: &Path) -> Vec<serde_json::Value> {
+    metrics(out)
+        .iter()
+        .map(|m| {
+            let mut v = serde_json::to_value(m).unwrap();
+            for k in ["wall_s", "samples_per_s", "rollout_s", "update_s"] {
+                v.as_object_mut().unwrap().remove(k);
+            }
+            v
+        })
+        .collect()
+}
+
+/// Resume is bit for bit: a run stopped after iteration 2 and resumed ends with the weights
+/// and the metrics (rewards, successes, losses, KL, the referee's) of the run that was never
+/// stopped, for a feed-forward time trial and a recurrent race (row G: the policy's and the
+/// critic's recurrent states come back too). The envs, recurrent states and episode log come
+/// from the checkpoint's `loop.json`; a checkpoint without it (an older build's) resumes with
+/// respawned envs, and that run differs (so the check can fail).
+#[test]
+fn a_resumed_run_is_the_uninterrupted_run_bit_for_bit() {
+    let ff = TrainConfig::parse(CONFIG).unwrap();
+    let mut race = TrainConfig::parse(include_str!("../configs/smoke_race.toml")).unwrap();
+    race.run.row = 'G';
+    race.run.iterations = 4;
+    race.run.checkpoint_every = 2;
+    race.run.eval_every = 4;
+    race.run.eval_races = 1;
+    race.env.num_envs = 16;
+    race.ppo.steps_per_env = 20;
+    if let Some(r) = &mut race.env.race {
+        r.opponent = Path::new(env!("CARGO_MANIFEST_DIR")).join("../policies/stage1_guarded.blob");
+    }
+    for (name, config) in [("ff", ff), ("g", race)] {
+        assert_eq!((config.run.iterations, config.run.checkpoint_every), (4, 2));
+        let whole = tmp(&format!("bitwise-{name}-whole"));
+        run(&config, &options(&whole, false, None)).unwrap();
+        let stopped = tmp(&format!("bitwise-{name}-stopped"));
+        run(&config, &options(&stopped, false, Some(2))).unwrap();
+        assert!(stopped.join("checkpoints/iter_000002/loop.json").exists());
+        run(&config, &options(&stopped, true, None)).unwrap();
+        // The last checkpoint's actor as a blob, byte for byte (its weights' bits).
+        let device = Device::flex().autodiff();
+        let nets = |d: &Path| checkpoint_blob(&config, d, &device).unwrap().1;
+        assert!(
+            nets(&whole) == nets(&stopped),
+            "{name}: the networks differ"
+        );
+        assert_eq!(learning_record(&whole), learning_record(&stopped), "{name}");
+
+        // Without loop.json the envs are respawned: another run from iteration 3 on.
+        let respawned = tmp(&format!("bitwise-{name}-respawned"));
+        run(&config, &options(&respawned, false, Some(2))).unwrap();
+        std::fs::remove_file(respawned.join("checkpoints/iter_000002/loop.json")).unwrap();
+        // (its checksum goes with it, as an older build's checkpoint has none)
+        let state = respawned.join("checkpoints/iter_000002/state.json");
+        let mut json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&state).unwrap()).unwrap();
+        json["files"].as_object_mut().unwrap().remove("loop.json");
+        std::fs::write(&state, json.to_string()).unwrap();
+        run(&config, &options(&respawned, true, None)).unwrap();
+        assert!(
+            nets(&whole) != nets(&respawned),
+            "{name}: a respawn changed nothing"
+        );
+        for d in [whole, stopped, respawned] {
+            let _ = std::fs::remove_dir_all(d);
+        }
+    }
+}
+
 #[test]
 fn a_resumed_run_may_raise_its_budget_and_trains_as_if_it_had_it_from_the_start() {
     let config = TrainConfig::parse(CONFIG).unwrap();
@@ -172,7 +244,8 @@ fn a_fork_continues_a_run_under_a_changed_config_and_records_its_parent() {
     run(&short, &options(&parent, false, None)).unwrap();
 
     // Forked under the parent's own recipe with the larger budget: the same learning state as
-    // resuming the parent with that budget (both respawn the environments at iteration 2).
+    // resuming the parent with that budget (the same environment, so both continue the
+    // parent's flights from its checkpoint's loop.json).
     let same = tmp("fork_same");
     let fork = |out: &Path| RunOptions {
         fork_from: Some(parent.clone()),

@@ -166,7 +166,7 @@ impl Preset {
 }
 
 /// A simulated drone: its kinematic state and its propellers' actual speeds.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Body {
     /// Position, attitude, velocity and body rates.
     pub state: VehicleState,

@@ -481,7 +481,18 @@ impl Perturbation {
             pending: VecDeque::new(),
             jitter_rng: stream(0x7065_7274_6a69_7474), // "pertjitt"
             noise_rng: stream(0x7065_7274_6e6f_6973),  // "pertnois"
+            drawn_from: (seed, index),
         }
+    }
+
+    /// The episode [`EpisodePerturbation::snapshot`] saw, drawn again from this
+    /// perturbation on `preset` and moved to where it was.
+    pub fn restore(&self, preset: &Preset, s: &EpisodePerturbationSnapshot) -> EpisodePerturbation {
+        let mut e = self.episode(preset, s.seed, s.index);
+        e.pending = s.pending.iter().copied().collect();
+        e.jitter_rng.set_word_pos(s.jitter_word_pos);
+        e.noise_rng.set_word_pos(s.noise_word_pos);
+        e
     }
 }
 
@@ -565,6 +576,19 @@ pub struct EpisodePerturbation {
     pending: VecDeque<MotorCommand>,
     jitter_rng: ChaCha8Rng,
     noise_rng: ChaCha8Rng,
+    /// The draw's seed and index ([`Perturbation::episode`]), for [`Self::snapshot`].
+    drawn_from: (u64, u64),
+}
+
+/// What an episode's perturbation has consumed so far ([`EpisodePerturbation::snapshot`]):
+/// with the [`Perturbation`] and preset it was drawn from, the episode exactly as it is.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EpisodePerturbationSnapshot {
+    seed: u64,
+    index: u64,
+    pending: Vec<MotorCommand>,
+    jitter_word_pos: u128,
+    noise_word_pos: u128,
 }
 
 impl EpisodePerturbation {
@@ -596,6 +620,17 @@ impl EpisodePerturbation {
             state
         } else {
             self.noise.apply(&state, &mut self.noise_rng)
+        }
+    }
+
+    /// Where this episode's draws stand ([`Perturbation::restore`] puts it back).
+    pub fn snapshot(&self) -> EpisodePerturbationSnapshot {
+        EpisodePerturbationSnapshot {
+            seed: self.drawn_from.0,
+            index: self.drawn_from.1,
+            pending: self.pending.iter().copied().collect(),
+            jitter_word_pos: self.jitter_rng.get_word_pos(),
+            noise_word_pos: self.noise_rng.get_word_pos(),
         }
     }
 

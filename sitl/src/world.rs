@@ -22,7 +22,7 @@ use rayon::prelude::*;
 pub const PAR_CHUNK_WORLDS: usize = 256;
 
 /// One drone of a world: its rigid body and the referee's view of its gate progress.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Drone {
     /// Rigid-body state and propeller speeds.
     pub body: Body,

@@ -151,6 +151,7 @@ impl Default for WarmStart {
             teacher_cruise_mps: 9.0,
             teacher_blob: None,
             student: None,
+            transplant: false,
             rounds: 40,
             steps_per_env: 50,
             epochs: 3,

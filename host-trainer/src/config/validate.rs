@@ -118,7 +118,7 @@ fn env_and_race(c: &TrainConfig) -> Result<(), ConfigError> {
 fn warm_start(c: &TrainConfig) -> Result<(), ConfigError> {
     for w in c.warm_start.iter().flat_map(WarmStart::stages) {
         // No rounds: the student as given (refine stages have no student of their own).
-        if (w.rounds == 0 && w.student.is_none())
+        if (w.rounds == 0 && w.student.is_none() && !w.transplant)
             || w.steps_per_env == 0
             || w.epochs == 0
             || w.minibatch == 0
@@ -126,7 +126,14 @@ fn warm_start(c: &TrainConfig) -> Result<(), ConfigError> {
         {
             return bad(
                 "warm_start.rounds, steps_per_env, epochs, minibatch and max_samples (and \
-                 every refine stage's) must be positive (rounds may be 0 with a student)",
+                 every refine stage's) must be positive (rounds may be 0 with a student or a \
+                 transplant)",
+            );
+        }
+        if w.transplant && (w.student.is_some() || w.teacher_blob.is_none()) {
+            return bad(
+                "warm_start.transplant embeds warm_start.teacher_blob as the student: it needs \
+                 the teacher_blob and no warm_start.student",
             );
         }
         if !(w.learning_rate > 0.0 && w.teacher_cruise_mps > 0.0 && w.student_noise_std >= 0.0) {
@@ -192,9 +199,15 @@ fn ppo(c: &TrainConfig) -> Result<(), ConfigError> {
             );
         }
     }
-    if c.env.fold_mirror && c.warm_start.is_some() {
+    let imitates = c
+        .warm_start
+        .iter()
+        .flat_map(WarmStart::stages)
+        .any(|w| w.rounds > 0);
+    if c.env.fold_mirror && imitates {
         return bad(
-            "env.fold_mirror: a warm start's teacher labels the world's motors, not the folded ones (not supported)",
+            "env.fold_mirror: a warm start's DAgger rounds label the world's motors, not the folded ones (not supported; \
+             warm_start.transplant with rounds = 0 folds)",
         );
     }
     if p.critic_learning_rate

@@ -19,6 +19,8 @@ pub enum EnvError {
     /// The opponent's blob does not validate or cannot be flown as stage 2's opponent, or
     /// the observation is folded ([`firmware_core::mirror`]) on a track without the symmetry.
     Unflyable(String),
+    /// A snapshot ([`super::VecEnv::restore`]) that is not of an env of this shape.
+    Snapshot(String),
 }
 
 impl core::fmt::Display for EnvError {
@@ -29,6 +31,7 @@ impl core::fmt::Display for EnvError {
                 write!(f, "opponent '{}': {message}", path.display())
             }
             Self::Unflyable(m) => f.write_str(m),
+            Self::Snapshot(m) => write!(f, "the env snapshot does not fit: {m}"),
         }
     }
 }

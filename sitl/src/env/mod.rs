@@ -38,6 +38,7 @@ mod config;
 mod error;
 mod opponent;
 pub mod reward;
+pub mod snapshot;
 mod spawn;
 mod stats;
 
@@ -51,6 +52,7 @@ use opponent::Race;
 pub use opponent::{MAX_BLOB_BYTES, interned, read_blob};
 pub use reward::{Competition, RewardTerms, RewardWeights, dense_competition};
 use reward::{Rewards, StepOutcome};
+pub use snapshot::{ENV_SNAPSHOT_FORMAT, EnvSnapshot};
 use spawn::{PassReplay, SpawnRule, respawn};
 pub use stats::{EnvStats, StepRecord};
 

@@ -47,7 +47,7 @@ impl Default for RewardWeights {
 
 /// The reward's terms summed over steps and envs, each already × dt and signed as it enters
 /// the reward (so `total` is their sum).
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct RewardTerms {
     /// Progress toward the target gate.
     pub progress: f64,

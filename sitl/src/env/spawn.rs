@@ -12,7 +12,7 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 /// States after the last [`PassReplay::LEN`] gate passes of one env, oldest overwritten.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub(super) struct PassReplay {
     states: [Option<(Drone, [f32; ACTION_DIM])>; PassReplay::LEN],
     next: usize,

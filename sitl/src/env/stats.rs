@@ -4,7 +4,7 @@
 use super::RewardTerms;
 
 /// Per-step statistics of the whole batch, drained by [`super::VecEnv::take_stats`].
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EnvStats {
     /// Env-steps taken.
     pub steps: u64,
