@@ -399,6 +399,12 @@ pub struct PpoConfig {
     /// rate). Default none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub critic_learning_rate: Option<f64>,
+    /// The actor's LSTM layers step at `learning_rate` × this (the head at `learning_rate`):
+    /// a recurrent actor whose LSTM is far more sensitive than its head (a transplant's
+    /// carrying units, `warm_start.transplant`) otherwise spends the KL budget of every
+    /// update there. In (0, 1]; the fused update only. Paper: none (one rate).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lstm_learning_rate_scale: Option<f64>,
     /// Initial action standard deviation. Paper: 1.0.
     pub init_std: f32,
     /// Start the actor's output bias at the preset's hover action (a ≈ 0.52 with `paper`)

@@ -342,6 +342,15 @@ fn a_transplant_needs_its_teacher_alone_and_may_fold() {
             "fold_mirror",
         ),
         (text.replacen("transplant = true\n", "", 1), "rounds"),
+        (
+            text.replacen("[ppo]\n", "[ppo]\nlstm_learning_rate_scale = 0.0\n", 1),
+            "lstm_learning_rate_scale",
+        ),
+        (
+            text.replacen("[ppo]\n", "[ppo]\nlstm_learning_rate_scale = 0.1\n", 1)
+                .replacen("row = \"G\"", "row = \"C\"", 1),
+            "recurrent row",
+        ),
     ] {
         let e = TrainConfig::parse(&bad).unwrap_err().to_string();
         assert!(e.contains(says), "{says}: {e}");

@@ -31,6 +31,7 @@ fn params() -> PpoConfig {
         max_std: None,
         max_std_decay: None,
         critic_learning_rate: None,
+        lstm_learning_rate_scale: None,
         init_std: 0.5,
         init_hover: false,
         update: UpdateKind::Fused,

@@ -221,6 +221,7 @@ const SHIPPED_RACES: &[(&str, &str)] = &[
     ("stage2_D", "stage2_D"),
     ("stage2_E", "stage2_E"),
     ("stage2_F", "stage2_F"),
+    ("stage2_transplant", "stage2_transplant"),
 ];
 
 /// Every shipped stage-2 blob is its config's run (hash, seed, name, preset), its actor is
@@ -251,10 +252,11 @@ fn shipped_jsonl<T: serde::de::DeserializeOwned>(name: &str, file: &str) -> Vec<
 }
 
 fn check_race(name: &str, config_name: &str) {
-    // The shipped pipeline's config, else the experiment's.
+    // The shipped pipeline's config, else the experiment's, else the policy's own.
     let path = ["host-trainer/configs", "host-trainer/configs/experiments"]
         .map(|d| format!("{d}/{config_name}.toml"))
         .into_iter()
+        .chain([format!("policies/{config_name}/config.toml")])
         .find(|p| root().join(p).is_file())
         .unwrap_or_else(|| panic!("{config_name}: no config"));
     let (raw, config, iterations) = shipped_blob(name, &path);

@@ -134,6 +134,7 @@ impl Default for PpoConfig {
             max_std: None,
             max_std_decay: None,
             critic_learning_rate: None,
+            lstm_learning_rate_scale: None,
             init_std: 1.0,
             init_hover: false,
             update: UpdateKind::Auto,

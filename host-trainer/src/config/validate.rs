@@ -215,5 +215,16 @@ fn ppo(c: &TrainConfig) -> Result<(), ConfigError> {
     {
         return bad("ppo.critic_learning_rate must be positive");
     }
+    if let Some(s) = p.lstm_learning_rate_scale {
+        if !(s > 0.0 && s <= 1.0) {
+            return bad("ppo.lstm_learning_rate_scale must be in (0, 1]");
+        }
+        let recurrent = matches!(c.run.row.to_ascii_uppercase(), 'E' | 'F' | 'G');
+        if !recurrent || p.update != crate::config::UpdateKind::Fused {
+            return bad(
+                "ppo.lstm_learning_rate_scale needs a recurrent row (E, F, G) and update = \"fused\"",
+            );
+        }
+    }
     Ok(())
 }

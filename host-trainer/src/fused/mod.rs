@@ -84,19 +84,34 @@ impl AdamMoments {
     /// One Adam step of `params` along `grads` at learning rate `lr`, in `burn`'s
     /// arithmetic (burn-optim's `AdaptiveMomentum::transform`, then `param − lr·update`).
     pub fn step(&mut self, params: &mut [f32], grads: &[f32], lr: f64) {
+        self.step_split(params, grads, 0, lr, lr);
+    }
+
+    /// [`Self::step`] with the first `split` parameters at `lr_head_of_split` and the rest
+    /// at `lr` (`ppo.lstm_learning_rate_scale`: the LSTM layers lead the flat layout).
+    pub fn step_split(
+        &mut self,
+        params: &mut [f32],
+        grads: &[f32],
+        split: usize,
+        lr_head_of_split: f64,
+        lr: f64,
+    ) {
         self.time += 1;
         let t = self.time as i32;
         let bias_correction2_sqrt = (1.0 - BETA_2.powi(t)).sqrt();
         let combined = bias_correction2_sqrt / (1.0 - BETA_1.powi(t));
         let eps = EPSILON * bias_correction2_sqrt;
         let (f1, f2) = (1.0 - BETA_1, 1.0 - BETA_2);
-        let lr = lr as f32;
-        for (((p, &g), m), v) in params
+        let (lr_first, lr) = (lr_head_of_split as f32, lr as f32);
+        for (i, (((p, &g), m), v)) in params
             .iter_mut()
             .zip(grads)
             .zip(&mut self.moment_1)
             .zip(&mut self.moment_2)
+            .enumerate()
         {
+            let lr = if i < split { lr_first } else { lr };
             *m = *m * BETA_1 + g * f1;
             *v = *v * BETA_2 + g * g * f2;
             let update = (*m * combined) / (v.sqrt() + eps);
@@ -383,7 +398,15 @@ impl FusedLearner {
             critic.grad.iter_mut().for_each(|g| *g *= factor);
         }
         let lr = *learning_rate;
-        actor.adam.step(&mut actor.net.params, &actor.grad, lr);
+        let lstm_len = if actor.recurrent.is_some() {
+            actor.net.offsets.first().map_or(0, |o| o.0)
+        } else {
+            0
+        };
+        let lstm_lr = lr * p.lstm_learning_rate_scale.unwrap_or(1.0);
+        actor
+            .adam
+            .step_split(&mut actor.net.params, &actor.grad, lstm_len, lstm_lr, lr);
         if let Some(max_std) = p.max_std {
             let ln_max = max_std.ln();
             let ls_at = actor.net.mlp_len();
@@ -425,6 +448,25 @@ fn recurrent_side<M: Module>(
 mod tests {
     use super::kernels::{exp_approx, gemm, tanh_in_place, tanh_loop};
     use super::*;
+
+    /// `step_split` steps the first parameters at their own rate and the rest exactly as
+    /// `step` does (the moments of both alike).
+    #[test]
+    fn a_split_step_moves_the_first_parameters_at_their_rate() {
+        let grads: Vec<f32> = (0..10).map(|i| (i as f32 - 4.5) * 0.1).collect();
+        let (mut plain, mut split) = (vec![0.5f32; 10], vec![0.5f32; 10]);
+        let (mut a, mut b) = (AdamMoments::new(10), AdamMoments::new(10));
+        for _ in 0..3 {
+            a.step(&mut plain, &grads, 1e-2);
+            b.step_split(&mut split, &grads, 4, 1e-4, 1e-2);
+        }
+        assert_eq!(&plain[4..], &split[4..]);
+        assert_eq!((a.moment_1, a.moment_2), (b.moment_1, b.moment_2));
+        for i in 0..4 {
+            let (moved_plain, moved_split) = (plain[i] - 0.5, split[i] - 0.5);
+            assert!((moved_split / moved_plain - 0.01).abs() < 1e-3, "{i}");
+        }
+    }
 
     #[test]
     fn exp_and_tanh_match_std() {
