@@ -91,25 +91,24 @@ pub fn actor_from_blob<A: PolicyNet>(
     config: &TrainConfig,
     device: &Device,
 ) -> Result<A, TrainError> {
-    let raw = std::fs::read(path).map_err(io(path))?;
-    let bytes = firmware_core::blob::AlignedBytes::new(&raw);
-    let blob = firmware_core::blob::Blob::parse(bytes.as_bytes())
-        .map_err(|e| TrainError::Checkpoint(format!("{}: {e}", path.display())))?;
-    if blob.header().architecture != *arch {
+    let (header, weights) = read_blob(path, |e| {
+        TrainError::Checkpoint(format!("{}: {e}", path.display()))
+    })?;
+    if header.architecture != *arch {
         return Err(TrainError::Checkpoint(format!(
             "{}: not a row-{} blob",
             path.display(),
             config.run.row
         )));
     }
-    if blob.header().observation != config.observation_spec() {
+    if header.observation != config.observation_spec() {
         return Err(TrainError::Checkpoint(format!(
             "{}: its observation spec differs from the config's (env.velocity_scale_mps?)",
             path.display()
         )));
     }
     let std = vec![config.ppo.init_std; usize::from(arch.action_dim)];
-    A::from_payload(arch, &blob.dequantized(), &std, device)
+    A::from_payload(arch, &weights, &std, device)
         .ok_or_else(|| TrainError::Checkpoint(format!("{}: weights do not fit", path.display())))
 }
 
@@ -123,23 +122,29 @@ pub fn actor_transplanted_from<A: PolicyNet>(
     config: &TrainConfig,
     device: &Device,
 ) -> Result<A, TrainError> {
-    let raw = std::fs::read(path).map_err(io(path))?;
-    let bytes = firmware_core::blob::AlignedBytes::new(&raw);
     let refused = |reason: String| TrainError::Blob {
         what: format!("warm_start.teacher_blob '{}'", path.display()),
         reason,
     };
-    let blob =
-        firmware_core::blob::Blob::parse(bytes.as_bytes()).map_err(|e| refused(e.to_string()))?;
-    crate::transplant::spec_fits(&blob.header().observation, &config.observation_spec())
+    let (header, weights) = read_blob(path, refused)?;
+    crate::transplant::spec_fits(&header.observation, &config.observation_spec())
         .map_err(|e| refused(e.to_string()))?;
-    let payload = crate::transplant::transplant(
-        &blob.header().architecture,
-        &blob.dequantized(),
-        arch,
-        &fresh.payload(),
-    )
-    .map_err(|e| refused(e.to_string()))?;
+    let payload =
+        crate::transplant::transplant(&header.architecture, &weights, arch, &fresh.payload())
+            .map_err(|e| refused(e.to_string()))?;
     A::from_payload(arch, &payload, &fresh.std(), device)
         .ok_or_else(|| refused("the transplanted weights do not fit".into()))
+}
+
+/// The header and the (dequantised) weights of the blob file at `path`; a blob that does
+/// not parse is refused through `refused`.
+fn read_blob(
+    path: &Path,
+    refused: impl Fn(String) -> TrainError,
+) -> Result<(firmware_core::blob::BlobHeader, Vec<f32>), TrainError> {
+    let raw = std::fs::read(path).map_err(io(path))?;
+    let bytes = firmware_core::blob::AlignedBytes::new(&raw);
+    let blob =
+        firmware_core::blob::Blob::parse(bytes.as_bytes()).map_err(|e| refused(e.to_string()))?;
+    Ok((blob.header().clone(), blob.dequantized()))
 }
