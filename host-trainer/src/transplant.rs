@@ -10,8 +10,8 @@
 //! Where the target has layers the source has not (the LSTM stack before the head, hidden
 //! layers after the source's last), they **carry** each value `z` through: [`Carry::UNITS`]
 //! units `φ(s z + c_k)` of the layer's nonlinearity, from which the next layer reads
-//! `z ≈ Σ_k β_k u_k + β_0` back. The scale `s` and offsets `c_k` are fixed ([`Carry::LSTM`],
-//! [`Carry::TANH`]; chosen by a search so that every weight stays O(1)); β is the least-squares
+//! `z ≈ Σ_k β_k u_k + β_0` back. The scale `s` and offsets `c_k` are fixed ([`Carry::lstm`],
+//! [`Carry::tanh`]; chosen by a search so that every weight stays O(1)); β is the least-squares
 //! fit of the identity on [−1, 1] (the pipeline clips every input there; the actions are
 //! clamped there). Weights of order one matter: Adam moves every weight by about the
 //! learning rate, so a value carried at a small scale ε and read back at 1/ε (the obvious
