@@ -19,6 +19,7 @@
 //! | [`bridge`] | MAVLink lockstep races: a controller as an endpoint, the simulator as the clock, the ground station, framing and signing |
 //! | [`plot`] | standalone SVG plots: learning curves, the top-down view of a race |
 //! | [`files`] | atomic file writes |
+//! | [`shipped`] | the shipped policies the commands fly when none is named |
 //!
 //! The track, the gate tests, the crash rules and the observation pipeline are
 //! firmware-core's: nothing here re-implements them. Nothing here knows of a learning
@@ -39,5 +40,6 @@ pub mod plot;
 pub mod quant;
 pub mod referee;
 pub mod robustness;
+pub mod shipped;
 pub mod stats;
 pub mod world;

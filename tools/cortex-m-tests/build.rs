@@ -10,21 +10,30 @@
 //!   `synthetic::blob_i8`) and `int8_X.bin`: the golden observations with, in place of the
 //!   f64 reference, the host's own int8 outputs (f32 widened to f64), which the M4 must
 //!   reproduce bit for bit;
-//! * and `observation_expected.bin`: the 30 f32 of `fixtures::observation_case()` observed
-//!   with the host's firmware-core, for the M4 to reproduce.
+//! * `observation_expected.bin`: the 30 f32 of `fixtures::observation_case()` observed
+//!   with the host's firmware-core, for the M4 to reproduce;
+//! * for the shipped policies the STM32F405 image holds (`../stm32f405-fit/policy_source.rs`:
+//!   stage 1 and stage 2), `shipped_N.bin` (the blob in int8), `shipped_N.txt` (what it is)
+//!   and `shipped_N_commands.bin`: the rotor commands (4 f32 rpm per step, little-endian) the
+//!   host's `Controller` gives on it over `fixtures::flight`, which the M4 must reproduce.
 
 use std::env;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use firmware_core::blob::{AlignedBytes, Blob};
+use firmware_core::blob::{AlignedBytes, Blob, WeightDtype, convert_bytes};
+use firmware_core::controller::Controller;
 use firmware_core::observation::{Observation, ObservationLayout, ObservationSpec};
 use firmware_core::policy::{Architecture, TableRow};
 use firmware_core::synthetic::{self, GOLDEN_ROWS, golden_seed};
+use firmware_core::track::Track;
 
 #[path = "src/fixtures.rs"]
 #[allow(dead_code)]
 mod fixtures;
+
+#[path = "../stm32f405-fit/policy_source.rs"]
+mod policy_source;
 
 /// Bytes of the mps2-an386 code region (memory.x `FLASH`).
 const CODE_REGION_BYTES: usize = 4 * 1024 * 1024;
@@ -40,6 +49,12 @@ fn main() {
     println!("cargo:rerun-if-changed=build.rs");
     println!("cargo:rerun-if-changed=memory.x");
     println!("cargo:rerun-if-changed=src/fixtures.rs");
+    println!("cargo:rerun-if-changed=../stm32f405-fit/policy_source.rs");
+    for slot in policy_source::IMAGE_POLICIES {
+        for p in slot.candidates {
+            println!("cargo:rerun-if-changed={}", root.join(p).display());
+        }
+    }
     println!("cargo:rerun-if-changed={}", golden_dir.display());
     for row in GOLDEN_ROWS {
         println!(
@@ -94,6 +109,36 @@ fn main() {
          program they do not fit the {CODE_REGION_BYTES}-byte code region of mps2-an386"
     );
 
+    // The shipped blobs live in their own image (`shipped`; `icount` holds them beside the
+    // synthetic A and G blobs, less than the golden set).
+    let mut shipped_total = 0;
+    for (n, slot) in policy_source::IMAGE_POLICIES.iter().enumerate() {
+        let n = n + 1;
+        let (what, source) = policy_source::source_blob(&root, slot)
+            .unwrap_or_else(|e| panic!("the {} blob: {e}", slot.role));
+        let blob = convert_bytes(&source, WeightDtype::I8)
+            .unwrap_or_else(|e| panic!("{what}: int8 conversion: {e}"));
+        shipped_total += blob.len();
+        let commands =
+            controller_commands(&blob, slot.row).unwrap_or_else(|e| panic!("{what}: {e}"));
+        write(&out.join(format!("shipped_{n}.bin")), &blob);
+        write(
+            &out.join(format!("shipped_{n}.txt")),
+            format!(
+                "the {} policy {what} (row {}, int8)",
+                slot.role,
+                slot.row.letter()
+            )
+            .as_bytes(),
+        );
+        write(&out.join(format!("shipped_{n}_commands.bin")), &commands);
+    }
+    assert!(
+        shipped_total + CODE_RESERVE_BYTES <= CODE_REGION_BYTES,
+        "the shipped blobs take {shipped_total} bytes: with {CODE_RESERVE_BYTES} bytes for the \
+         program they do not fit the {CODE_REGION_BYTES}-byte code region of mps2-an386"
+    );
+
     let case = fixtures::observation_case();
     let obs = ObservationSpec::paper(ObservationLayout::FullOpponent30)
         .observe(
@@ -109,6 +154,27 @@ fn main() {
         .flat_map(|v| v.to_le_bytes())
         .collect();
     write(&out.join("observation_expected.bin"), &bytes);
+}
+
+/// The rotor commands (4 f32 rpm per step) of the host's `Controller` on `blob` over
+/// `fixtures::flight`; the opponent is given to the rows that observe one.
+fn controller_commands(blob: &[u8], row: TableRow) -> Result<Vec<u8>, String> {
+    let aligned = AlignedBytes::new(blob);
+    let mut controller = Controller::from_bytes(aligned.as_bytes(), Track::figure_eight())
+        .map_err(|e| e.to_string())?;
+    let mut out = Vec::new();
+    for i in 0..fixtures::FLIGHT_STEPS {
+        let (own, opponent) = fixtures::flight(i);
+        let opponent = (row != TableRow::A).then_some(&opponent);
+        let step = controller.step(&own, opponent);
+        if let Some(fault) = step.fault {
+            return Err(format!("step {i}: the controller faulted: {fault:?}"));
+        }
+        for rpm in step.command.rpm {
+            out.extend_from_slice(&rpm.to_le_bytes());
+        }
+    }
+    Ok(out)
 }
 
 /// The binary golden `golden` (layout above) with its means replaced by the host's int8

@@ -76,22 +76,33 @@ fn spawn(mut c: Command, what: &str) -> Result<ExitCode> {
     Ok(exit_code_of(status, what))
 }
 
-/// `cargo run -p cortex-m-tests --release --target thumbv7em-none-eabihf`: the test image
-/// under QEMU (runner of `.cargo/config.toml`); its exit status is QEMU's.
+/// The test images under QEMU (runner of `.cargo/config.toml`), `release` profile: the
+/// test image `cortex-m-tests` (`cargo run -p cortex-m-tests --release --target
+/// thumbv7em-none-eabihf`), then `shipped` (the F405 image's int8 policies against the host);
+/// the exit status is the first failing QEMU's, else success.
 pub fn run_tests() -> Result<ExitCode> {
     check_qemu()?;
-    let mut c = cargo();
-    c.args([
-        "run",
-        "-p",
-        PACKAGE,
-        "--release",
-        "--target",
-        TARGET,
-        "--bin",
-        PACKAGE,
-    ]);
-    spawn(c, "the Cortex-M test image")
+    for (bin, what) in [
+        (PACKAGE, "the Cortex-M test image"),
+        ("shipped", "the Cortex-M shipped-policy image"),
+    ] {
+        let mut c = cargo();
+        c.args([
+            "run",
+            "-p",
+            PACKAGE,
+            "--release",
+            "--target",
+            TARGET,
+            "--bin",
+            bin,
+        ]);
+        let code = spawn(c, what)?;
+        if code != ExitCode::SUCCESS {
+            return Ok(code);
+        }
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 /// The instruction-count bench (`icount`, or `icount-breakdown`), profile `firmware`, under

@@ -1,8 +1,8 @@
 //! `size-report`: flash and RAM of the Cortex-M4 size images, read from their ELF files,
 //! against an STM32F405: `size-a`, `size-g` of `tools/cortex-m-tests` (one f32 blob each and
-//! a minimal program that steps the controller) and `tools/stm32f405-fit` (the same program
-//! with row G in int8, linked against the F405's own memory map: that it links at all is the
-//! fit check).
+//! a minimal program that steps the controller) and `tools/stm32f405-fit` (the shipped
+//! stage-1 and stage-2 policies in int8, one controller each, linked against the F405's own
+//! memory map: that it links at all is the fit check).
 //!
 //! Measured (from the ELF's section headers): flash = every allocated section with contents
 //! (`.vector_table`, `.text`, `.rodata`, the load image of `.data`); static RAM = every
@@ -68,6 +68,9 @@ pub struct ImageSizes {
     pub scratch_a_bytes: Option<u32>,
     /// `OVERTAKE_SCRATCH_G_BYTES`.
     pub scratch_g_bytes: Option<u32>,
+    /// `OVERTAKE_CONTROLLER_COUNT` (controllers the image holds), when it exports it; one
+    /// otherwise.
+    pub controller_count: Option<u32>,
 }
 
 /// Reads the sizes of the ELF at `path`.
@@ -113,6 +116,7 @@ pub fn read_elf(path: &Path) -> Result<ImageSizes> {
         controller_bytes: symbol_u32("OVERTAKE_CONTROLLER_BYTES"),
         scratch_a_bytes: symbol_u32("OVERTAKE_SCRATCH_A_BYTES"),
         scratch_g_bytes: symbol_u32("OVERTAKE_SCRATCH_G_BYTES"),
+        controller_count: symbol_u32("OVERTAKE_CONTROLLER_COUNT"),
     })
 }
 
@@ -124,24 +128,35 @@ pub const F405_PACKAGE: &str = "stm32f405-fit";
 pub struct Row {
     /// The image (its bin name).
     pub image: String,
-    /// Table 1 row of the blob.
-    pub row: TableRow,
+    /// Table 1 rows of the blobs it holds (one controller each).
+    pub rows: Vec<TableRow>,
     /// How the blob stores its weights.
     pub dtype: WeightDtype,
-    /// Bytes of the embedded blob (regenerated here exactly as build.rs does).
+    /// Bytes of the embedded blobs (regenerated here exactly as build.rs does).
     pub blob_bytes: u64,
     /// The ELF's sizes.
     pub sizes: ImageSizes,
 }
 
 impl Row {
-    /// Computed RAM of one step: the controller plus the step's activations.
+    /// Computed RAM of one step: every controller the image holds plus the activations of
+    /// the largest step (one step runs at a time).
     pub fn step_ram(&self) -> Option<u64> {
-        let scratch = match self.row {
-            TableRow::A => self.sizes.scratch_a_bytes?,
-            _ => self.sizes.scratch_g_bytes?,
-        };
-        Some(u64::from(self.sizes.controller_bytes?) + u64::from(scratch))
+        let mut scratch = 0;
+        for row in &self.rows {
+            scratch = scratch.max(match row {
+                TableRow::A => self.sizes.scratch_a_bytes?,
+                _ => self.sizes.scratch_g_bytes?,
+            });
+        }
+        let controllers = u64::from(self.sizes.controller_count.unwrap_or(1));
+        Some(controllers * u64::from(self.sizes.controller_bytes?) + u64::from(scratch))
+    }
+
+    /// The rows it holds, e.g. "A" or "A+G".
+    pub fn letters(&self) -> String {
+        let letters: Vec<String> = self.rows.iter().map(|r| r.letter().to_string()).collect();
+        letters.join("+")
     }
 }
 
@@ -186,7 +201,7 @@ pub fn report(rows: &[Row]) -> String {
     );
     let _ = writeln!(
         s,
-        "* computed, not measured: size_of::<Controller>() on the target + the step's activations (SCRATCH_BYTES) + the frame allowance (STEP_FRAME_ALLOWANCE_BYTES)."
+        "* computed, not measured: size_of::<Controller>() on the target per controller held + the largest step's activations (SCRATCH_BYTES) + the frame allowance (STEP_FRAME_ALLOWANCE_BYTES)."
     );
     let _ = writeln!(
         s,
@@ -214,7 +229,7 @@ pub fn report(rows: &[Row]) -> String {
 
 /// The plain-sentence verdict for one image.
 pub fn verdict(r: &Row) -> String {
-    let name = format!("Row {} {} ({})", r.row.letter(), r.dtype.name(), r.image);
+    let name = format!("Row {} {} ({})", r.letters(), r.dtype.name(), r.image);
     let ram = r.sizes.ram + r.step_ram().unwrap_or(0);
     let flash = if r.sizes.flash <= F405_FLASH_BYTES {
         format!(
@@ -233,7 +248,7 @@ pub fn verdict(r: &Row) -> String {
     };
     let ram = if ram <= F405_SRAM_BYTES {
         format!(
-            "its RAM ({ram} bytes with one step's controller and activations) fits the 128 KB main SRAM"
+            "its RAM ({ram} bytes with its controllers and one step's activations) fits the 128 KB main SRAM"
         )
     } else {
         format!("its RAM ({ram} bytes) does NOT fit the 128 KB main SRAM")
@@ -244,14 +259,39 @@ pub fn verdict(r: &Row) -> String {
 #[path = "../stm32f405-fit/policy_source.rs"]
 mod policy_source;
 
-/// The bytes of the F405 image's blob, made as its build script makes them (the same
-/// `policy_source` picks the blob), in int8, and what it is.
-pub fn f405_blob() -> Result<(Vec<u8>, String)> {
-    let (what, source) = policy_source::source_blob(&workspace_root())
-        .map_err(|e| Error::new(format!("encoding the synthetic G blob: {e}")))?;
-    let bytes =
-        convert_bytes(&source, WeightDtype::I8).map_err(|e| Error::new(format!("{what}: {e}")))?;
-    Ok((bytes, what))
+/// One policy of the F405 image, made as its build script makes it (the same
+/// `policy_source` picks the blob), in int8.
+#[derive(Clone, Debug)]
+pub struct F405Policy {
+    /// "stage 1" or "stage 2".
+    pub role: &'static str,
+    /// Its Table 1 row.
+    pub row: TableRow,
+    /// What it is: the shipped path, or the synthetic fallback.
+    pub what: String,
+    /// The int8 blob.
+    pub bytes: Vec<u8>,
+}
+
+/// The F405 image's policies, in the order it holds them.
+pub fn f405_policies() -> Result<Vec<F405Policy>> {
+    let root = workspace_root();
+    policy_source::IMAGE_POLICIES
+        .iter()
+        .map(|slot| {
+            let (what, source) = policy_source::source_blob(&root, slot).map_err(|e| {
+                Error::new(format!("encoding the synthetic {} blob: {e}", slot.role))
+            })?;
+            let bytes = convert_bytes(&source, WeightDtype::I8)
+                .map_err(|e| Error::new(format!("{what}: {e}")))?;
+            Ok(F405Policy {
+                role: slot.role,
+                row: slot.row,
+                what,
+                bytes,
+            })
+        })
+        .collect()
 }
 
 /// Builds the size images, reads them and prints the report.
@@ -268,26 +308,39 @@ pub fn run() -> Result<ExitCode> {
             .map_err(|e| Error::new(format!("encoding blob {}: {e}", row.letter())))?;
         rows.push(Row {
             image: bin.clone(),
-            row,
+            rows: vec![row],
             dtype: WeightDtype::F32,
             blob_bytes: blob.len() as u64,
             sizes: read_elf(path)?,
         });
     }
-    rows.sort_by_key(|r| r.row.letter());
-    let (blob, what) = f405_blob()?;
+    rows.sort_by_key(Row::letters);
+    let policies = f405_policies()?;
     for (bin, path) in build_bins(F405_PACKAGE, PROFILE, &[F405_PACKAGE])? {
         rows.push(Row {
             image: bin,
-            row: TableRow::G,
+            rows: policies.iter().map(|p| p.row).collect(),
             dtype: WeightDtype::I8,
-            blob_bytes: blob.len() as u64,
+            blob_bytes: policies.iter().map(|p| p.bytes.len() as u64).sum(),
             sizes: read_elf(&path)?,
         });
     }
     print!("{}", report(&rows));
+    let held: Vec<String> = policies
+        .iter()
+        .map(|p| {
+            format!(
+                "the {} policy {} (row {}, int8, {} bytes)",
+                p.role,
+                p.what,
+                p.row.letter(),
+                p.bytes.len()
+            )
+        })
+        .collect();
     println!(
-        "{F405_PACKAGE} holds {what} and is linked against the STM32F405's memory map (tools/stm32f405-fit/memory.x): it linked, so it fits."
+        "{F405_PACKAGE} holds {} and is linked against the STM32F405's memory map (tools/stm32f405-fit/memory.x): it linked, so it fits.",
+        held.join(" and ")
     );
     Ok(ExitCode::SUCCESS)
 }
@@ -299,7 +352,7 @@ mod tests {
     fn row(row: TableRow, flash: u64, ram: u64) -> Row {
         Row {
             image: "size-x".into(),
-            row,
+            rows: vec![row],
             dtype: WeightDtype::F32,
             blob_bytes: 1000,
             sizes: ImageSizes {
@@ -309,6 +362,7 @@ mod tests {
                 controller_bytes: Some(2000),
                 scratch_a_bytes: Some(1040),
                 scratch_g_bytes: Some(4880),
+                controller_count: None,
             },
         }
     }
@@ -321,6 +375,41 @@ mod tests {
         assert!(g.contains("over by 251424 bytes"), "{g}");
         assert_eq!(row(TableRow::G, 1, 0).step_ram(), Some(6880));
         assert_eq!(row(TableRow::A, 1, 0).step_ram(), Some(3040));
+        // Two controllers, one step at a time: 2 × 2000 + the larger scratch.
+        let mut both = row(TableRow::A, 1, 0);
+        both.rows.push(TableRow::G);
+        both.sizes.controller_count = Some(2);
+        assert_eq!(both.step_ram(), Some(8880));
+        assert!(
+            verdict(&both).starts_with("Row A+G f32"),
+            "{}",
+            verdict(&both)
+        );
+    }
+
+    /// The F405 image holds what `sitl race` flies: its stage-2 policy is the race's default
+    /// ego and its stage-1 policy the race's default opponent.
+    #[test]
+    fn the_f405_image_holds_the_policies_sitl_race_flies() {
+        let root = workspace_root();
+        let file_of = |slot: &policy_source::ImagePolicy| {
+            slot.candidates
+                .iter()
+                .map(|p| root.join(p))
+                .find(|p| p.is_file())
+                .and_then(|p| p.file_name().map(|n| n.to_owned()))
+        };
+        let name = |p: std::path::PathBuf| p.file_name().map(|n| n.to_owned());
+        let race_ego = sitl::shipped::find(&sitl::shipped::RACE_EGOS).and_then(name);
+        let race_opponent = sitl::shipped::find(&sitl::shipped::OPPONENTS).and_then(name);
+        assert_eq!(file_of(&policy_source::STAGE2), race_ego);
+        assert_eq!(file_of(&policy_source::STAGE1), race_opponent);
+        let policies = f405_policies().expect("the image's policies");
+        assert_eq!(policies.len(), 2);
+        assert!(
+            policies.iter().all(|p| p.what.starts_with("policies/")),
+            "{policies:?}"
+        );
     }
 
     #[test]

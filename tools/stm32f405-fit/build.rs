@@ -2,9 +2,10 @@
 //!
 //! * puts this crate's `memory.x` (STM32F405: 1 MB flash, 128 KB SRAM) on the linker search
 //!   path for cortex-m-rt's `link.x`;
-//! * writes `policy.bin` to `OUT_DIR`: the row-G policy `policy_source::source_blob` picks
-//!   (the first shipped one of `SHIPPED_G`, else synthetic weights) converted to int8
-//!   (`firmware_core::blob::convert_bytes`). With feature `f32`, the f32 blob instead.
+//! * writes `stage1.bin` and `stage2.bin` to `OUT_DIR`: the stage-1 (row A) and stage-2
+//!   (row G) policies `policy_source::source_blob` picks (the first shipped candidate of each
+//!   slot, else synthetic weights) converted to int8 (`firmware_core::blob::convert_bytes`).
+//!   With feature `f32`, the f32 blobs instead.
 use std::env;
 use std::fs;
 use std::path::PathBuf;
@@ -21,8 +22,10 @@ fn main() {
     println!("cargo::rerun-if-changed=build.rs");
     println!("cargo::rerun-if-changed=policy_source.rs");
     println!("cargo::rerun-if-changed=memory.x");
-    for p in policy_source::SHIPPED_G {
-        println!("cargo::rerun-if-changed={}", root.join(p).display());
+    for slot in policy_source::IMAGE_POLICIES {
+        for p in slot.candidates {
+            println!("cargo::rerun-if-changed={}", root.join(p).display());
+        }
     }
     fs::copy(manifest.join("memory.x"), out.join("memory.x")).expect("copy memory.x");
     println!("cargo::rustc-link-search={}", out.display());
@@ -32,7 +35,11 @@ fn main() {
     } else {
         WeightDtype::I8
     };
-    let (what, source) = policy_source::source_blob(&root).expect("the row-G blob");
-    let bytes = convert_bytes(&source, dtype).unwrap_or_else(|e| panic!("{what}: {e}"));
-    fs::write(out.join("policy.bin"), &bytes).expect("write policy.bin");
+    for (n, slot) in policy_source::IMAGE_POLICIES.iter().enumerate() {
+        let (what, source) = policy_source::source_blob(&root, slot)
+            .unwrap_or_else(|e| panic!("the {} blob: {e}", slot.role));
+        let bytes = convert_bytes(&source, dtype).unwrap_or_else(|e| panic!("{what}: {e}"));
+        let file = format!("stage{}.bin", n + 1);
+        fs::write(out.join(&file), &bytes).unwrap_or_else(|e| panic!("write {file}: {e}"));
+    }
 }

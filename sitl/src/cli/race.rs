@@ -77,40 +77,24 @@ pub fn run(args: RaceArgs) -> Result<ExitCode, String> {
     })
 }
 
-/// The first of `names` in policies/ (of the working directory, else of the repository this
-/// binary was built from), else `fallback`.
+/// The first of `names` in policies/ (`sitl::shipped::find`), else `fallback`.
 fn shipped(names: &[&str], fallback: &str) -> String {
-    let dirs = [
-        PathBuf::from("policies"),
-        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../policies"),
-    ];
-    dirs.iter()
-        .flat_map(|d| names.iter().map(move |n| d.join(n)))
-        .find(|p| p.is_file())
-        .map_or_else(|| fallback.to_string(), |p| p.display().to_string())
+    sitl::shipped::find(names).map_or_else(|| fallback.to_string(), |p| p.display().to_string())
 }
 
 /// The ego (system 1) and the opponent (system 2) unless `--opponent none`: as given, else
 /// the shipped ones.
 fn entrants(contest: &Contest, preset: &Preset) -> Result<Vec<Entrant>, String> {
-    let ego_spec = contest.ego.clone().unwrap_or_else(|| {
-        shipped(
-            &[
-                "stage2_transplant.blob",
-                "stage2.blob",
-                "stage1.blob",
-                "stage1_guarded.blob",
-                "stage1_imitation.blob",
-            ],
-            "baseline",
-        )
-    });
+    let ego_spec = contest
+        .ego
+        .clone()
+        .unwrap_or_else(|| shipped(&sitl::shipped::RACE_EGOS, "baseline"));
     let opponent_spec = match contest.opponent.as_deref() {
         Some("none") => None,
         Some(o) => Some(o.to_string()),
         // The stage-1 policy a stage-2 ego was trained against; never the ego itself.
         None => {
-            let candidates: Vec<&str> = ["stage1.blob", "stage1_guarded.blob"]
+            let candidates: Vec<&str> = sitl::shipped::OPPONENTS
                 .into_iter()
                 .filter(|n| !ego_spec.ends_with(n))
                 .collect();

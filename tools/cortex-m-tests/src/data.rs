@@ -108,3 +108,32 @@ pub static OVERTAKE_SCRATCH_A_BYTES: u32 =
 pub static OVERTAKE_SCRATCH_G_BYTES: u32 = (firmware_core::policy::PolicyG::SCRATCH_BYTES
     + firmware_core::controller::STEP_FRAME_ALLOWANCE_BYTES)
     as u32;
+
+/// One shipped policy of the STM32F405 image (`tools/stm32f405-fit/policy_source.rs`), in
+/// int8, with the host controller's rotor commands over `fixtures::flight`.
+pub struct Shipped {
+    /// What it is (role, path, row).
+    pub what: &'static str,
+    /// True for the rows that observe the opponent.
+    pub observes_opponent: bool,
+    /// The int8 blob.
+    pub blob: &'static [u8],
+    /// The host's commands: 4 f32 rpm per flight step, little-endian.
+    pub commands: &'static [u8],
+}
+
+/// The stage-1 (row A) and the stage-2 (row G) policies the STM32F405 image holds.
+pub static SHIPPED: [Shipped; 2] = [
+    Shipped {
+        what: include_str!(concat!(env!("OUT_DIR"), "/shipped_1.txt")),
+        observes_opponent: false,
+        blob: aligned_out_dir_bytes!("shipped_1.bin"),
+        commands: include_bytes!(concat!(env!("OUT_DIR"), "/shipped_1_commands.bin")),
+    },
+    Shipped {
+        what: include_str!(concat!(env!("OUT_DIR"), "/shipped_2.txt")),
+        observes_opponent: true,
+        blob: aligned_out_dir_bytes!("shipped_2.bin"),
+        commands: include_bytes!(concat!(env!("OUT_DIR"), "/shipped_2_commands.bin")),
+    },
+];

@@ -39,6 +39,9 @@ pub fn exit_on_panic(info: &core::panic::PanicInfo<'_>) -> ! {
 /// The command that builds and runs the test image (the runner is in `.cargo/config.toml`).
 pub const RUN_TESTS: &str = "cargo run -p cortex-m-tests --release --target thumbv7em-none-eabihf";
 
+/// The command that builds and runs both test images (`cortex-m-tests`, then `shipped`).
+pub const RUN_TESTS_TOOL: &str = "cargo run -p tools -- cortex-m test";
+
 /// The command that runs the instruction-count bench (the runner gains `-icount shift=0`).
 pub const RUN_ICOUNT: &str = "cargo run -p tools -- cortex-m icount";
 

@@ -1,5 +1,6 @@
 //! Instructions per `Controller::step` on the emulated Cortex-M4F, for rows A and G in f32
-//! and in int8.
+//! and in int8 (synthetic weights), and for the shipped stage-1 and stage-2 policies the
+//! STM32F405 image holds (int8), against the budget of one 50 Hz step on a 168 MHz F405.
 //!
 //! Runs under `qemu-system-arm ... -icount shift=0` (1 ns of virtual time per instruction)
 //! and counts with SysTick (25 MHz: one tick per 40 instructions). It first calibrates on a
@@ -39,7 +40,7 @@ mod bench {
     use cortex_m_semihosting::debug::{self, EXIT_FAILURE, EXIT_SUCCESS};
     use cortex_m_semihosting::hprintln;
     use cortex_m_tests::counter::{Counter, INSTRUCTIONS_PER_TICK, Stats, start_calibrated};
-    use cortex_m_tests::data::{BLOB_A, BLOB_A_I8, BLOB_G, BLOB_G_I8};
+    use cortex_m_tests::data::{BLOB_A, BLOB_A_I8, BLOB_G, BLOB_G_I8, SHIPPED};
     use cortex_m_tests::fixtures::{FLIGHT_STEPS, flight};
     use cortex_m_tests::stack;
     use firmware_core::Controller;
@@ -49,6 +50,14 @@ mod bench {
     const TARGET_A: u64 = 90_000;
     const TARGET_G: u64 = 1_300_000;
     const TARGET_G_I8: u64 = 1_000_000;
+    /// Core clock of the STM32F405 (Hz).
+    const F405_CLOCK_HZ: u64 = 168_000_000;
+    /// The control rate every policy runs at (Hz).
+    const CONTROL_RATE_HZ: u64 = 50;
+    /// Cycles in one control step: 3,360,000. An instruction takes at least one cycle on
+    /// the M4 (loads, multiplies-accumulate and flash wait states add more), so the
+    /// instruction count is a lower bound on the cycles a step costs.
+    const STEP_BUDGET_CYCLES: u64 = F405_CLOCK_HZ / CONTROL_RATE_HZ;
 
     pub fn run() -> ! {
         let Some(p) = cortex_m::Peripherals::take() else {
@@ -59,10 +68,26 @@ mod bench {
             }
         };
         let counter = start_calibrated(p.SYST);
-        let a = controller_steps(&counter, "A", BLOB_A, TARGET_A);
-        let g = controller_steps(&counter, "G", BLOB_G, TARGET_G);
-        let a8 = controller_steps(&counter, "A int8", BLOB_A_I8, TARGET_A);
-        let g8 = controller_steps(&counter, "G int8", BLOB_G_I8, TARGET_G_I8);
+        let a = controller_steps(&counter, "row A", BLOB_A, TARGET_A);
+        let g = controller_steps(&counter, "row G", BLOB_G, TARGET_G);
+        let a8 = controller_steps(&counter, "row A int8", BLOB_A_I8, TARGET_A);
+        let g8 = controller_steps(&counter, "row G int8", BLOB_G_I8, TARGET_G_I8);
+        let mut within_budget = true;
+        for (n, shipped) in SHIPPED.iter().enumerate() {
+            let role = if n == 0 { "stage 1" } else { "stage 2" };
+            hprintln!("{}", shipped.what);
+            let steps = controller_steps(&counter, role, shipped.blob, STEP_BUDGET_CYCLES);
+            hprintln!(
+                "{}: {} instructions/step = {}.{:02} % of the {} cycles of one 50 Hz step at 168 MHz ({}x headroom at one cycle per instruction)",
+                role,
+                steps,
+                100 * steps / STEP_BUDGET_CYCLES,
+                (10_000 * steps / STEP_BUDGET_CYCLES) % 100,
+                STEP_BUDGET_CYCLES,
+                STEP_BUDGET_CYCLES / steps.max(1)
+            );
+            within_budget &= steps <= STEP_BUDGET_CYCLES;
+        }
         hprintln!(
             "icount: A {} instructions/step (target {}: {}), G {} instructions/step (target {}: {}); int8: A {}, G {} instructions/step (target {}: {})",
             a,
@@ -76,7 +101,11 @@ mod bench {
             TARGET_G_I8,
             verdict(g8, TARGET_G_I8)
         );
-        debug::exit(EXIT_SUCCESS);
+        debug::exit(if within_budget {
+            EXIT_SUCCESS
+        } else {
+            EXIT_FAILURE
+        });
         loop {
             cortex_m::asm::bkpt();
         }
@@ -95,7 +124,7 @@ mod bench {
     /// Mean instructions of `Controller::step` over the flight (one warm-up step first).
     fn controller_steps(counter: &Counter, row: &str, blob: &'static [u8], target: u64) -> u64 {
         let Ok(mut c) = Controller::from_bytes(blob, Track::figure_eight()) else {
-            hprintln!("row {}: blob does not load", row);
+            hprintln!("{}: blob does not load", row);
             debug::exit(EXIT_FAILURE);
             return 0;
         };
@@ -111,7 +140,7 @@ mod bench {
         }
         let mean = stats.mean_instructions();
         hprintln!(
-            "row {}: Controller::step: {} instructions/step mean over {} steps (min {}, max {}; +-{} quantisation), target <= {}: {}; stack high-water {} bytes; faults {}, gates passed {}",
+            "{}: Controller::step: {} instructions/step mean over {} steps (min {}, max {}; +-{} quantisation), target <= {}: {}; stack high-water {} bytes; faults {}, gates passed {}",
             row,
             mean,
             stats.n,
