@@ -263,7 +263,12 @@ fn train(config: &Path, options: RunOptions) -> Result<(), String> {
             ),
         };
         let overtakes = match (m.eval_overtakes, m.eval_sustained_overtakes) {
-            (Some(o), Some(s)) => format!(", {o} overtakes ({s} sustained)"),
+            (Some(o), Some(s)) => format!(
+                ", {o} overtakes ({s} sustained){}",
+                m.eval_win_rate
+                    .map(|w| format!(", win rate {w:.3}"))
+                    .unwrap_or_default()
+            ),
             _ => String::new(),
         };
         println!(

@@ -73,6 +73,9 @@ pub struct IterationMetrics {
     /// Referee, races only: overtakes whose lead was held 2 s.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub eval_sustained_overtakes: Option<u64>,
+    /// Referee, races only: the ego's win rate (docs/DESIGN.md "Metrics").
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub eval_win_rate: Option<f64>,
     /// With `run.select`, from its first iteration: the validation's success rate (the
     /// deterministic policy, `run.select.episodes` × 45 s from its spawns).
     #[serde(skip_serializing_if = "Option::is_none", default)]
@@ -134,6 +137,14 @@ pub fn learning_curves(name: &str, history: &[IterationMetrics]) -> String {
             &[
                 series("rollout (noisy policy)", &|m| Some(m.success_rate)),
                 series("referee (deterministic policy)", &|m| m.eval_success_rate),
+                series("referee win rate (races)", &|m| m.eval_win_rate),
+                series("referee sustained / overtakes (races)", &|m| match (
+                    m.eval_sustained_overtakes,
+                    m.eval_overtakes,
+                ) {
+                    (Some(s), Some(o)) if o > 0 => Some(s as f64 / o as f64),
+                    _ => None,
+                }),
             ],
         ),
         line_chart(

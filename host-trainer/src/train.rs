@@ -461,6 +461,7 @@ fn evaluate<A: PolicyNet, C: ValueNet>(
         if config.env.race.is_some() {
             m.eval_overtakes = Some(r.overtakes);
             m.eval_sustained_overtakes = Some(r.sustained_overtakes);
+            m.eval_win_rate = r.win_rate;
         }
     }
     if let Some(select) = &config.run.select

@@ -159,6 +159,15 @@ pub struct Report {
     pub opponent_crashes: u64,
     /// The ego's crashes by cause, all episodes.
     pub crash_causes: CrashCounts,
+    /// Races: flights (spans between (re)spawns), all episodes (docs/DESIGN.md "Metrics").
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub flights: Option<u64>,
+    /// Races: mean over episodes of the ego's win rate, (flights won + tied / 2) / flights.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub win_rate: Option<f64>,
+    /// 95% interval of `win_rate`; `None` for fewer than two episodes.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub win_rate_ci95: Option<[f64; 2]>,
 }
 
 impl Report {
@@ -179,6 +188,11 @@ impl Report {
             .iter()
             .flat_map(|e| e.lap_times_s.iter().copied())
             .collect();
+        let wins: Vec<f64> = episodes
+            .iter()
+            .filter_map(EpisodeMetrics::win_rate)
+            .collect();
+        let race = opponent.is_some() && !wins.is_empty();
         let overtakes: u64 = sum(|e| e.overtakes);
         let sustained: u64 = sum(|e| e.sustained_overtakes);
         Self {
@@ -208,6 +222,9 @@ impl Report {
             crash_causes: episodes
                 .iter()
                 .fold(CrashCounts::default(), |a, e| a.plus(e.crash_causes)),
+            flights: race.then(|| sum(|e| e.flights)),
+            win_rate: if race { mean(&wins) } else { None },
+            win_rate_ci95: if race { ci95(&wins, 0.0, 1.0) } else { None },
         }
     }
 
@@ -262,6 +279,13 @@ impl Report {
             ),
             ("lap time", lap),
             ("sustained overtakes", overtake),
+            (
+                "win rate",
+                match self.win_rate {
+                    Some(r) => format!("{r:.3}{}", ci(self.win_rate_ci95, 3)),
+                    None => "—".to_string(),
+                },
+            ),
         ];
         let w: Vec<usize> = rows
             .iter()
@@ -295,6 +319,9 @@ impl Report {
         }
         if self.opponent.is_some() {
             out += &format!(", opponent crashes {}", self.opponent_crashes);
+            if let Some(f) = self.flights {
+                out += &format!(", {f} flights");
+            }
         }
         out + "\n"
     }

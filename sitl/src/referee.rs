@@ -11,7 +11,13 @@
 //!   point of the centreline segment it is flying) goes from behind the opponent's to ahead;
 //!   an overtake is sustained once the ego has kept that lead for 2 s without a crash. An
 //!   overtake whose lead is lost, ended by a reset, or still under 2 s old when the episode
-//!   ends is not sustained.
+//!   ends is not sustained;
+//! - flights won (races only): a flight is the span between (re)spawns, the last one ending
+//!   with the episode. The ego wins a flight that the opponent's crash alone ends, or that the
+//!   episode's end finds it ahead along the track; both crashing on the same step (their
+//!   collision included) or dead level at the end is a tie (half a win); anything else is a
+//!   loss. The win rate is (won + tied / 2) / flights, so the ego's and the opponent's rates
+//!   sum to 1 and two equal pilots from symmetric starts would score 0.5 each.
 //!
 //! Gate passes and crashes come from [`World::judge`], i.e. firmware-core's gate test and
 //! crash rules; progress comes from firmware-core's [`Centerline`] and [`ArcLength`].
@@ -55,6 +61,13 @@ pub struct EpisodeMetrics {
     pub sustained_overtakes: u32,
     /// The ego's crashes by cause.
     pub crash_causes: CrashCounts,
+    /// Flights of a race: the spans between (re)spawns, the last ending with the episode (0
+    /// in a time trial).
+    pub flights: u32,
+    /// Flights the ego won: ended by the opponent's crash alone, or ahead at the episode's end.
+    pub flights_won: u32,
+    /// Flights tied: both crashed on the same step, or level at the episode's end.
+    pub flights_tied: u32,
 }
 
 /// Crashes counted by cause.
@@ -120,6 +133,14 @@ impl EpisodeMetrics {
     /// The fastest lap (s), `None` for a DNF.
     pub fn best_lap_s(&self) -> Option<f64> {
         self.lap_times_s.iter().copied().reduce(f64::min)
+    }
+
+    /// (flights won + tied / 2) / flights; `None` in a time trial.
+    pub fn win_rate(&self) -> Option<f64> {
+        (self.flights > 0).then(|| {
+            (f64::from(self.flights_won) + 0.5 * f64::from(self.flights_tied))
+                / f64::from(self.flights)
+        })
     }
 }
 
@@ -187,6 +208,11 @@ pub struct Referee {
     /// gives the segment it flies now, counted on across laps.
     spawn_segment: [u64; 2],
     lead: Lead,
+    /// Steps scored since the last (re)spawn.
+    flight_steps: u32,
+    /// The ego's lead after the last step scored without a reset (m); `None` without an
+    /// opponent.
+    last_lead_m: Option<f32>,
 }
 
 impl Referee {
@@ -200,6 +226,8 @@ impl Referee {
             lap_start_step: None,
             spawn_segment: [0; 2],
             lead: Lead::Behind,
+            flight_steps: 0,
+            last_lead_m: None,
         }
     }
 
@@ -221,6 +249,8 @@ impl Referee {
             *seg = self.progress.spawn_segment(d.progress.target);
         }
         self.lap_start_step = None;
+        self.flight_steps = 0;
+        self.last_lead_m = self.lead_m(drones);
         self.lead = match self.lead_m(drones) {
             Some(l) if l > 0.0 => Lead::Ahead {
                 since_s: self.time_s(),
@@ -251,6 +281,7 @@ impl Referee {
     /// [`Referee::restart`].
     pub fn score(&mut self, drones: &[Drone], steps: &[DroneStep]) -> bool {
         self.steps += 1;
+        self.flight_steps += 1;
         let t = self.time_s();
         let ego = steps.first().copied().unwrap_or_default();
         let opponent = steps.get(1).copied();
@@ -273,12 +304,24 @@ impl Referee {
         if opponent.is_some_and(|o| o.crash.is_some()) {
             self.metrics.opponent_crashes += 1;
         }
-        let reset = ego.crash.is_some() || opponent.is_some_and(|o| o.crash.is_some());
+        let opponent_crashed = opponent.is_some_and(|o| o.crash.is_some());
+        let reset = ego.crash.is_some() || opponent_crashed;
         if reset {
+            // This flight is over: the episode's end does not count it again.
+            self.flight_steps = 0;
+            if opponent.is_some() {
+                self.metrics.flights += 1;
+                match (ego.crash.is_some(), opponent_crashed) {
+                    (true, true) => self.metrics.flights_tied += 1,
+                    (false, true) => self.metrics.flights_won += 1,
+                    _ => {}
+                }
+            }
             self.lead = Lead::Behind;
             return true;
         }
-        if let Some(lead) = self.lead_m(drones) {
+        self.last_lead_m = self.lead_m(drones);
+        if let Some(lead) = self.last_lead_m {
             self.lead = match self.lead {
                 Lead::Behind if lead > 0.0 => {
                     self.metrics.overtakes += 1;
@@ -309,9 +352,17 @@ impl Referee {
         &self.metrics
     }
 
-    /// Ends the episode.
+    /// Ends the episode (and its last flight, if a step was scored since the last spawn).
     pub fn finish(mut self) -> EpisodeMetrics {
         self.metrics.sim_seconds = self.time_s();
+        if let (Some(lead), true) = (self.last_lead_m, self.flight_steps > 0) {
+            self.metrics.flights += 1;
+            if lead > 0.0 {
+                self.metrics.flights_won += 1;
+            } else if lead == 0.0 {
+                self.metrics.flights_tied += 1;
+            }
+        }
         self.metrics
     }
 }

@@ -289,3 +289,64 @@ fn a_recurrent_blob_of_another_period_is_refused_by_the_pilot() {
     assert!(PilotSpec::from_blob("g20ms", &blob(TableRow::G, 20_000_000)).is_ok());
     assert!(PilotSpec::from_blob("a10ms", &blob(TableRow::A, 10_000_000)).is_ok());
 }
+
+/// Flights and the win rate (docs/DESIGN.md "Metrics"): a flight the episode's end finds the
+/// ego ahead is won, behind lost; one that the opponent's crash alone ends is won, the ego's
+/// crash lost; a time trial has no flights.
+#[test]
+fn flights_are_won_ahead_at_the_end_or_by_the_opponent_crashing_alone() {
+    let line = line();
+    let ego = |t: f32| on_line(&line, 1.3 + 1.2 * t, 0.5);
+    let opp = |t: f32| on_line(&line, 1.5 + t, 0.0);
+    let starts = [along_track_spawn(&line, 1.3), along_track_spawn(&line, 1.5)];
+    let race = world(CrashRules::STAGE2);
+
+    // Past the overtake at 1 s: one flight, won.
+    let (m, _) = script(&race, starts, [&ego, &opp], 4.0);
+    assert_eq!((m.flights, m.flights_won, m.flights_tied), (1, 1, 0));
+    assert_eq!(m.win_rate(), Some(1.0));
+    // Before it: one flight, lost.
+    let (m, _) = script(&race, starts, [&ego, &opp], 0.5);
+    assert_eq!((m.flights, m.flights_won, m.flights_tied), (1, 0, 0));
+    assert_eq!(m.win_rate(), Some(0.0));
+
+    // The ego ahead, then into the ground: lost, and the episode's end does not count the
+    // crashed flight twice.
+    let falling_ego = |t: f32| {
+        let p = ego(t);
+        if t < 2.0 {
+            p
+        } else {
+            p - Vec3::new(0.0, 0.0, 2.0 * (t - 2.0))
+        }
+    };
+    let (m, crash) = script(&race, starts, [&falling_ego, &opp], 6.0);
+    assert!(crash.is_some());
+    assert_eq!((m.flights, m.flights_won, m.flights_tied), (1, 0, 0));
+
+    // The opponent ahead, then into the ground: won by the ego, still behind.
+    let slow_ego = |t: f32| on_line(&line, 1.3 + 0.8 * t, 0.5);
+    let falling_opp = |t: f32| {
+        let p = opp(t);
+        if t < 1.0 {
+            p
+        } else {
+            p - Vec3::new(0.0, 0.0, 2.0 * (t - 1.0))
+        }
+    };
+    let (m, crash) = script(&race, starts, [&slow_ego, &falling_opp], 6.0);
+    let (_, [ego_crash, opp_crash]) = crash.expect("the opponent crashes");
+    assert_eq!((ego_crash, opp_crash.is_some()), (None, true));
+    assert_eq!(m.overtakes, 0);
+    assert_eq!((m.flights, m.flights_won, m.flights_tied), (1, 1, 0));
+
+    // A time trial: no flights, no win rate.
+    let path = |t: f32| line.point(5.51 + t);
+    let (m, _) = script(
+        &world(CrashRules::STAGE1),
+        [along_track_spawn(&line, 5.51)],
+        [&path],
+        3.0,
+    );
+    assert_eq!((m.flights, m.win_rate()), (0, None));
+}

@@ -57,6 +57,14 @@ pub struct Point {
     pub crashes_per_s: Option<f64>,
     /// Mean action σ.
     pub sigma: Option<f64>,
+    /// The referee's crashes per second, where evaluated.
+    pub referee_crashes_per_s: Option<f64>,
+    /// Races: the referee's overtakes, where evaluated.
+    pub referee_overtakes: Option<f64>,
+    /// Races: the referee's sustained overtakes, where evaluated.
+    pub referee_sustained: Option<f64>,
+    /// Races: the referee's win rate (docs/DESIGN.md "Metrics"), where evaluated.
+    pub referee_win_rate: Option<f64>,
 }
 
 fn number(v: &Value, keys: &[&str]) -> Option<f64> {
@@ -76,6 +84,10 @@ pub fn point(v: &Value) -> Option<Point> {
         gates_per_s: number(v, &["gates_per_s"]),
         crashes_per_s: number(v, &["crash_rate_per_s", "crashes_per_s"]),
         sigma: number(v, &["action_std", "std"]),
+        referee_crashes_per_s: number(v, &["eval_crash_rate"]),
+        referee_overtakes: number(v, &["eval_overtakes"]),
+        referee_sustained: number(v, &["eval_sustained_overtakes"]),
+        referee_win_rate: number(v, &["eval_win_rate"]),
     })
 }
 
@@ -142,7 +154,7 @@ pub fn page(runs: &[(String, Vec<Point>)]) -> String {
         points: vec![(0.0, 0.0), (AUTHORS_SAMPLES_WITHOUT_A_GATE * m, 0.0)],
     });
     let samples = "samples (M env-steps)";
-    let charts = vec![
+    let mut charts = vec![
         line_chart(
             "referee success against samples",
             samples,
@@ -179,13 +191,55 @@ pub fn page(runs: &[(String, Vec<Point>)]) -> String {
             "σ (action units)",
             &series(&|p| p.sigma.map(|s| (p.samples * m, s))),
         ),
-        line_chart(
+    ];
+    let races = runs
+        .iter()
+        .any(|(_, p)| p.iter().any(|p| p.referee_overtakes.is_some()));
+    if !races {
+        // The authors' stage-1 run beside ours (a time trial's scale).
+        charts.push(line_chart(
             "referee success on the paper's scale",
             samples,
             "success (gates passed / met)",
             &paper_scale,
-        ),
-    ];
+        ));
+    } else {
+        let mut overtakes = series(&|p| p.referee_overtakes.map(|o| (p.samples * m, o)));
+        for (s, (label, _)) in overtakes.iter_mut().zip(runs) {
+            s.name = format!("{label}: all");
+        }
+        let mut sustained = series(&|p| p.referee_sustained.map(|o| (p.samples * m, o)));
+        for (s, (label, _)) in sustained.iter_mut().zip(runs) {
+            s.name = format!("{label}: sustained (lead held 2 s)");
+        }
+        overtakes.extend(sustained);
+        charts.extend([
+            line_chart(
+                "races: referee overtakes per evaluation",
+                samples,
+                "overtakes",
+                &overtakes,
+            ),
+            line_chart(
+                "races: referee crashes per second",
+                samples,
+                "crashes / s",
+                &series(&|p| p.referee_crashes_per_s.map(|c| (p.samples * m, c))),
+            ),
+            line_chart(
+                "races: referee win rate against samples",
+                samples,
+                "win rate (flights won + ties / 2)",
+                &series(&|p| p.referee_win_rate.map(|w| (p.samples * m, w))),
+            ),
+            line_chart(
+                "races: referee win rate against wall-clock",
+                "training wall-clock (min)",
+                "win rate (flights won + ties / 2)",
+                &series(&|p| p.referee_win_rate.map(|w| (p.wall_s / 60.0, w))),
+            ),
+        ]);
+    }
     grid(&charts, 2)
 }
 
@@ -269,5 +323,23 @@ mod tests {
         assert!(svg.contains("seed 1"));
         assert!(svg.contains("time-optimal bound"));
         assert!(svg.contains("no gate"));
+        assert!(!svg.contains("win rate"));
+    }
+
+    #[test]
+    fn a_race_run_gets_the_race_charts_and_not_the_time_trials_scale() {
+        let points = parse_metrics(
+            r#"{"samples":5e6,"wall_s":60,"eval_success_rate":0.9,"eval_crash_rate":0.05,"eval_overtakes":30,"eval_sustained_overtakes":12,"eval_win_rate":0.62}"#,
+            "m",
+        )
+        .unwrap();
+        assert_eq!(points[0].referee_overtakes, Some(30.0));
+        assert_eq!(points[0].referee_sustained, Some(12.0));
+        assert_eq!(points[0].referee_win_rate, Some(0.62));
+        assert_eq!(points[0].referee_crashes_per_s, Some(0.05));
+        let svg = page(&[("G".into(), points)]);
+        assert!(svg.contains("referee win rate against wall-clock"));
+        assert!(svg.contains("G: sustained (lead held 2 s)"));
+        assert!(!svg.contains("no gate"));
     }
 }
