@@ -13,11 +13,12 @@
 //!   overtake whose lead is lost, ended by a reset, or still under 2 s old when the episode
 //!   ends is not sustained;
 //! - flights won (races only): a flight is the span between (re)spawns, the last one ending
-//!   with the episode. The ego wins a flight that the opponent's crash alone ends, or that the
-//!   episode's end finds it ahead along the track; both crashing on the same step (their
-//!   collision included) or dead level at the end is a tie (half a win); anything else is a
-//!   loss. The win rate is (won + tied / 2) / flights, so the ego's and the opponent's rates
-//!   sum to 1 and two equal pilots from symmetric starts would score 0.5 each.
+//!   with the episode. The ego wins a flight that the opponent's crash alone ends, or that
+//!   ends ahead along the track either at the episode's end or with both drones crashing on
+//!   the same step (their collision: as in racing, the drone behind answers for running into
+//!   the one ahead); dead level is a tie (half a win); anything else is a loss. The win rate
+//!   is (won + tied / 2) / flights, so the ego's and the opponent's rates sum to 1 and two
+//!   equal pilots from symmetric starts would score 0.5 each.
 //!
 //! Gate passes and crashes come from [`World::judge`], i.e. firmware-core's gate test and
 //! crash rules; progress comes from firmware-core's [`Centerline`] and [`ArcLength`].
@@ -64,9 +65,10 @@ pub struct EpisodeMetrics {
     /// Flights of a race: the spans between (re)spawns, the last ending with the episode (0
     /// in a time trial).
     pub flights: u32,
-    /// Flights the ego won: ended by the opponent's crash alone, or ahead at the episode's end.
+    /// Flights the ego won: ended by the opponent's crash alone, or ahead along the track at
+    /// the episode's end or when both crashed on the same step.
     pub flights_won: u32,
-    /// Flights tied: both crashed on the same step, or level at the episode's end.
+    /// Flights that ended level (both crashing, or at the episode's end).
     pub flights_tied: u32,
 }
 
@@ -312,7 +314,7 @@ impl Referee {
             if opponent.is_some() {
                 self.metrics.flights += 1;
                 match (ego.crash.is_some(), opponent_crashed) {
-                    (true, true) => self.metrics.flights_tied += 1,
+                    (true, true) => self.judge_flight(self.lead_m(drones)),
                     (false, true) => self.metrics.flights_won += 1,
                     _ => {}
                 }
@@ -357,13 +359,19 @@ impl Referee {
         self.metrics.sim_seconds = self.time_s();
         if let (Some(lead), true) = (self.last_lead_m, self.flight_steps > 0) {
             self.metrics.flights += 1;
-            if lead > 0.0 {
-                self.metrics.flights_won += 1;
-            } else if lead == 0.0 {
-                self.metrics.flights_tied += 1;
-            }
+            self.judge_flight(Some(lead));
         }
         self.metrics
+    }
+
+    /// A flight that ended with both drones in the air or both crashed: the one ahead along
+    /// the track wins it, level is a tie.
+    fn judge_flight(&mut self, lead_m: Option<f32>) {
+        match lead_m {
+            Some(l) if l > 0.0 => self.metrics.flights_won += 1,
+            Some(0.0) => self.metrics.flights_tied += 1,
+            _ => {}
+        }
     }
 }
 

@@ -340,6 +340,30 @@ fn flights_are_won_ahead_at_the_end_or_by_the_opponent_crashing_alone() {
     assert_eq!(m.overtakes, 0);
     assert_eq!((m.flights, m.flights_won, m.flights_tied), (1, 1, 0));
 
+    // A collision: both crash on the same step, and the drone ahead along the track wins.
+    // The ego 0.3 m behind on the line at 2.4 m/s, the opponent at rest: the ego runs into it.
+    let s0 = 1.5;
+    let rear = |t: f32| line.point(s0 - 0.03 + 0.2 * t);
+    let parked = |_t: f32| line.point(s0);
+    let starts = [
+        along_track_spawn(&line, s0 - 0.03),
+        along_track_spawn(&line, s0),
+    ];
+    let (m, crash) = script(&race, starts, [&rear, &parked], 1.0);
+    let (_, [ego_crash, opp_crash]) = crash.expect("a collision");
+    assert!(
+        matches!(ego_crash, Some(CrashCause::Collision { .. })),
+        "{ego_crash:?}"
+    );
+    assert!(
+        matches!(opp_crash, Some(CrashCause::Collision { .. })),
+        "{opp_crash:?}"
+    );
+    assert_eq!((m.flights, m.flights_won, m.flights_tied), (1, 0, 0));
+    // The same, the roles swapped: the drone ahead is the ego, and it wins.
+    let (m, _) = script(&race, [starts[1], starts[0]], [&parked, &rear], 1.0);
+    assert_eq!((m.flights, m.flights_won, m.flights_tied), (1, 1, 0));
+
     // A time trial: no flights, no win rate.
     let path = |t: f32| line.point(5.51 + t);
     let (m, _) = script(
