@@ -200,6 +200,7 @@ fn race_config(num_envs: usize, competition: Competition) -> EnvConfig {
             opponent: OPPONENT.into(),
             competition,
             competition_weight: 0.5,
+            ego_ahead_fraction: 0.0,
         }),
         seed: 11,
         ..EnvConfig::stage2(num_envs, OPPONENT)
@@ -979,4 +980,37 @@ fn randomize_perturbs_the_ego_as_the_referee_does() {
     })
     .unwrap();
     assert_eq!(json["randomize"], "latency=0:1, noise=1");
+}
+
+/// `race.ego_ahead_fraction` swaps the stage-2 spawn's places: at 1 every ego starts 1 m
+/// ahead of its opponent (the opponent at (−1, 0, 0) m in the ego's frame), at 0 (the paper's)
+/// 1 m behind, at 0.5 some of each; a share outside [0, 1] is refused with the field named.
+#[test]
+fn ego_ahead_spawns_swap_the_places() {
+    let ahead_of_ego = |fraction: f32| -> Vec<f32> {
+        let mut config = race_config(64, Competition::Lead);
+        if let Some(r) = config.race.as_mut() {
+            r.ego_ahead_fraction = fraction;
+        }
+        let env = VecEnv::new(config).unwrap();
+        env.observations()
+            .chunks(30)
+            .map(|o| {
+                assert!(o[18].abs() < 1e-5 && o[19].abs() < 1e-5, "{:?}", &o[17..20]);
+                o[17] * 12.0 // the relative position is observed in units of 12 m
+            })
+            .collect()
+    };
+    assert!(ahead_of_ego(0.0).iter().all(|x| (x - 1.0).abs() < 1e-4));
+    assert!(ahead_of_ego(1.0).iter().all(|x| (x + 1.0).abs() < 1e-4));
+    let mixed = ahead_of_ego(0.5);
+    let swapped = mixed.iter().filter(|x| **x < 0.0).count();
+    assert!((16..=48).contains(&swapped), "{swapped} of 64 swapped");
+
+    let mut bad = race_config(1, Competition::Lead);
+    if let Some(r) = bad.race.as_mut() {
+        r.ego_ahead_fraction = 1.5;
+    }
+    let e = VecEnv::new(bad).err().expect("refused").to_string();
+    assert!(e.contains("race.ego_ahead_fraction"), "{e}");
 }

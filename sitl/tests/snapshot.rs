@@ -102,6 +102,7 @@ fn a_restored_race_steps_as_the_original() {
             opponent: STAGE1.into(),
             competition: Competition::Lead,
             competition_weight: 0.5,
+            ego_ahead_fraction: 0.0,
         }),
         ..EnvConfig::stage2(32, STAGE1)
     };

@@ -206,6 +206,8 @@ impl RustVecEnv {
                     ))
                 })?,
                 competition_weight,
+                // The paper's spawn; training configs may swap the places (`race.ego_ahead_fraction`).
+                ego_ahead_fraction: 0.0,
             }),
             (Task::Race, None) => {
                 return Err(PyValueError::new_err(

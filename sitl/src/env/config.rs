@@ -76,6 +76,13 @@ pub struct RaceConfig {
     /// Its weight λ_c (× dt like every term). Paper: 0.5. Default 0.5.
     #[serde(default = "paper_competition_weight")]
     pub competition_weight: f32,
+    /// The share of training spawns (0 to 1) with the roles swapped: the ego at the
+    /// opponent's place, 1 m ahead, the opponent at the ego's. Not the paper's (its ego always
+    /// starts behind, so its data is saturated with trailing: a policy never trained in the
+    /// lead flies worse there, docs/journal/stage2.md). Default 0: the paper's spawn, and
+    /// no random number drawn.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub ego_ahead_fraction: f32,
 }
 
 fn paper_competition_weight() -> f32 {
@@ -269,6 +276,7 @@ impl EnvConfig {
                 opponent: opponent.into(),
                 competition: Competition::Dense,
                 competition_weight: paper_competition_weight(),
+                ego_ahead_fraction: 0.0,
             }),
             ..Self::paper(num_envs)
         }
@@ -451,6 +459,12 @@ impl EnvConfig {
             return refuse(
                 "race.competition_weight",
                 format!("{}: expected a finite weight >= 0", r.competition_weight),
+            );
+        }
+        if !(0.0..=1.0).contains(&r.ego_ahead_fraction) {
+            return refuse(
+                "race.ego_ahead_fraction",
+                format!("{}: expected a share from 0 to 1", r.ego_ahead_fraction),
             );
         }
         Ok(())

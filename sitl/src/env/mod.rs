@@ -239,6 +239,11 @@ impl VecEnv {
             stage2_fraction: self.config.stage2_fraction,
             replay_fraction: self.config.replay_fraction,
             race: self.race.is_some(),
+            ego_ahead_fraction: self
+                .config
+                .race
+                .as_ref()
+                .map_or(0.0, |r| r.ego_ahead_fraction),
             randomize: self.config.randomize.as_ref().map(|p| *p.value()),
         }
     }

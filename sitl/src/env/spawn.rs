@@ -44,12 +44,15 @@ pub(super) struct SpawnRule {
     pub(super) stage2_fraction: f32,
     pub(super) replay_fraction: f32,
     pub(super) race: bool,
+    /// In a race, the share of spawns with the two drones' places swapped (the ego ahead).
+    pub(super) ego_ahead_fraction: f32,
     /// The ego's domain randomisation (`EnvConfig::randomize`), drawn anew at every spawn.
     pub(super) randomize: Option<Perturbation>,
 }
 
 /// A new episode in `slot`: a spawn drawn from its generator. In a race, the paper's stage-2 spawn
-/// for both drones, the opponent's controller reset to their gate. In a time trial, the
+/// for both drones (with probability `ego_ahead_fraction` their places swapped, the ego 1 m
+/// ahead), the opponent's controller reset to their gate. In a time trial, the
 /// stage-1 spawn with probability `stage1_fraction`, otherwise `mode`'s, moving along its
 /// heading at a speed drawn from [0, `max_speed_mps`] when that is positive. The previous
 /// action zeroed. Otherwise, with probability `replay_fraction`, the state after one of the
@@ -109,7 +112,15 @@ fn place(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut S
         };
         [s, s]
     } else {
-        mode.draw(&world.track, line, &mut slot.rng)
+        let [ego, opponent] = mode.draw(&world.track, line, &mut slot.rng);
+        let swap = rule.race
+            && rule.ego_ahead_fraction > 0.0
+            && slot.rng.random::<f32>() < rule.ego_ahead_fraction;
+        if swap {
+            [opponent, ego]
+        } else {
+            [ego, opponent]
+        }
     };
     if rule.max_speed_mps > 0.0 && !stage1 && !stage2 && !rule.race {
         let speed = slot.rng.random_range(0.0..rule.max_speed_mps);
