@@ -431,9 +431,54 @@ impl RunDir {
         any_config: bool,
     ) -> Result<(RunState<A, C>, String), Unusable> {
         let dir = self.checkpoints.join(name);
-        let bad = |m: String| {
-            Unusable::Corrupt(TrainError::Checkpoint(format!("{}: {m}", dir.display())))
+        let bad = |m: String| corrupt(&dir, m);
+        let state = self.verified_state(&dir, config, any_config)?;
+        let learner = load_learner::<A, C>(&dir, &state, config, arch, device)?;
+        let seed = config.run.seed;
+        let noise_rng =
+            restore_rng(seed, &state.noise_rng).ok_or_else(|| bad("noise_rng".into()))?;
+        let shuffle_rng =
+            restore_rng(seed, &state.shuffle_rng).ok_or_else(|| bad("shuffle_rng".into()))?;
+        let history = self
+            .read_metrics(state.iteration)
+            .map_err(Unusable::Refused)?;
+        let loop_file = dir.join(LOOP_FILE);
+        // A fork continues the parent's flights only under the parent's environment; under
+        // another it starts its envs afresh, as every fork did before `loop.json`.
+        let same_world = !any_config
+            || TrainConfig::load(&self.file("config.toml")).is_ok_and(|c| c.env == config.env);
+        let resumed_loop = if loop_file.exists() && same_world {
+            let text = std::fs::read(&loop_file).map_err(|e| bad(format!("{LOOP_FILE}: {e}")))?;
+            Some(
+                serde_json::from_slice::<LoopSnapshot>(&text)
+                    .map_err(|e| bad(format!("{LOOP_FILE}: {e}")))?,
+            )
+        } else {
+            None
         };
+        let run_state = RunState {
+            learner,
+            iteration: state.iteration,
+            samples: state.samples,
+            wall_s: state.wall_s,
+            noise_rng,
+            shuffle_rng,
+            history,
+            resumed_loop,
+        };
+        Ok((run_state, state.config_hash))
+    }
+
+    /// `state.json` of the checkpoint in `dir`, checked: written under this config (or one
+    /// that differs only in its budget, or any with `any_config`), of a format this build
+    /// reads, every file matching its checksum, and its counters plausible.
+    fn verified_state(
+        &self,
+        dir: &Path,
+        config: &TrainConfig,
+        any_config: bool,
+    ) -> Result<CheckpointState, Unusable> {
+        let bad = |m: String| corrupt(dir, m);
         let text = std::fs::read_to_string(dir.join("state.json"))
             .map_err(|e| bad(format!("state.json: {e}")))?;
         let state: CheckpointState =
@@ -500,81 +545,70 @@ impl RunDir {
                 state.iteration, state.samples, state.learning_rate, state.wall_s
             )));
         }
-        let seed = config.run.seed;
-        let mut rng = init_rng(seed);
-        let actor = A::fresh(arch, config.ppo.init_std, &mut rng, device)
-            .try_load_file(dir.join(CHECKPOINT_FILES[0]))
-            .map_err(|e| bad(format!("actor.bpk: {e:?}")))?;
-        let critic = C::fresh(arch, &mut rng, device)
-            .try_load_file(dir.join(CHECKPOINT_FILES[1]))
-            .map_err(|e| bad(format!("critic.bpk: {e:?}")))?;
-        if !all_finite(&actor) || !all_finite(&critic) {
-            return Err(bad("non-finite weights".into()));
-        }
-        let actor_optim = adam()
-            .load(dir.join(CHECKPOINT_FILES[2]))
-            .map_err(|e| bad(format!("actor_optim.bpk: {e:?}")))?;
-        let critic_optim = adam()
-            .load(dir.join(CHECKPOINT_FILES[3]))
-            .map_err(|e| bad(format!("critic_optim.bpk: {e:?}")))?;
-        let mut learner = Learner::new(actor, critic, state.learning_rate, device.clone());
-        learner.actor_optim = actor_optim;
-        learner.critic_optim = critic_optim;
-        let fused = dir.join(FUSED_ADAM);
-        if !fused.exists()
-            && state.iteration > 0
-            && config.ppo.update.resolve(arch.is_recurrent()) == crate::config::UpdateKind::Fused
-        {
-            eprintln!(
-                "note: {} has no {FUSED_ADAM} (written by the burn update): the fused update starts Adam afresh",
-                dir.display()
-            );
-        }
-        if fused.exists() {
-            let bytes = std::fs::read(&fused).map_err(|e| bad(format!("{FUSED_ADAM}: {e}")))?;
-            let optim = FusedOptim::from_safetensors(&bytes)
-                .map_err(|e| bad(format!("{FUSED_ADAM}: {e}")))?;
-            let finite = [&optim.actor, &optim.critic]
-                .iter()
-                .all(|m| m.moment_1.iter().chain(&m.moment_2).all(|v| v.is_finite()));
-            if !finite {
-                return Err(bad(format!("{FUSED_ADAM}: non-finite moments")));
-            }
-            learner.fused_optim = Some(optim);
-        }
-        let noise_rng =
-            restore_rng(seed, &state.noise_rng).ok_or_else(|| bad("noise_rng".into()))?;
-        let shuffle_rng =
-            restore_rng(seed, &state.shuffle_rng).ok_or_else(|| bad("shuffle_rng".into()))?;
-        let history = self
-            .read_metrics(state.iteration)
-            .map_err(Unusable::Refused)?;
-        let loop_file = dir.join(LOOP_FILE);
-        // A fork continues the parent's flights only under the parent's environment; under
-        // another it starts its envs afresh, as every fork did before `loop.json`.
-        let same_world = !any_config
-            || TrainConfig::load(&self.file("config.toml")).is_ok_and(|c| c.env == config.env);
-        let resumed_loop = if loop_file.exists() && same_world {
-            let text = std::fs::read(&loop_file).map_err(|e| bad(format!("{LOOP_FILE}: {e}")))?;
-            Some(
-                serde_json::from_slice::<LoopSnapshot>(&text)
-                    .map_err(|e| bad(format!("{LOOP_FILE}: {e}")))?,
-            )
-        } else {
-            None
-        };
-        let run_state = RunState {
-            learner,
-            iteration: state.iteration,
-            samples: state.samples,
-            wall_s: state.wall_s,
-            noise_rng,
-            shuffle_rng,
-            history,
-            resumed_loop,
-        };
-        Ok((run_state, state.config_hash))
+        Ok(state)
     }
+}
+
+/// A checkpoint that cannot be used as it is (the caller falls back to an earlier one).
+fn corrupt(dir: &Path, message: String) -> Unusable {
+    Unusable::Corrupt(TrainError::Checkpoint(format!(
+        "{}: {message}",
+        dir.display()
+    )))
+}
+
+/// The learner of the checkpoint in `dir`: networks, Adam states (burn's and the fused
+/// update's), the learning rate; non-finite weights or moments are refused.
+fn load_learner<A: PolicyNet, C: ValueNet>(
+    dir: &Path,
+    state: &CheckpointState,
+    config: &TrainConfig,
+    arch: &Architecture,
+    device: &Device,
+) -> Result<Learner<A, C>, Unusable> {
+    let bad = |m: String| corrupt(dir, m);
+    let mut rng = init_rng(config.run.seed);
+    let actor = A::fresh(arch, config.ppo.init_std, &mut rng, device)
+        .try_load_file(dir.join(CHECKPOINT_FILES[0]))
+        .map_err(|e| bad(format!("actor.bpk: {e:?}")))?;
+    let critic = C::fresh(arch, &mut rng, device)
+        .try_load_file(dir.join(CHECKPOINT_FILES[1]))
+        .map_err(|e| bad(format!("critic.bpk: {e:?}")))?;
+    if !all_finite(&actor) || !all_finite(&critic) {
+        return Err(bad("non-finite weights".into()));
+    }
+    let actor_optim = adam()
+        .load(dir.join(CHECKPOINT_FILES[2]))
+        .map_err(|e| bad(format!("actor_optim.bpk: {e:?}")))?;
+    let critic_optim = adam()
+        .load(dir.join(CHECKPOINT_FILES[3]))
+        .map_err(|e| bad(format!("critic_optim.bpk: {e:?}")))?;
+    let mut learner = Learner::new(actor, critic, state.learning_rate, device.clone());
+    learner.actor_optim = actor_optim;
+    learner.critic_optim = critic_optim;
+    let fused = dir.join(FUSED_ADAM);
+    if !fused.exists()
+        && state.iteration > 0
+        && config.ppo.update.resolve(arch.is_recurrent()) == crate::config::UpdateKind::Fused
+    {
+        eprintln!(
+            "note: {} has no {FUSED_ADAM} (written by the burn update): the fused update starts Adam afresh",
+            dir.display()
+        );
+    }
+    if fused.exists() {
+        let bytes = std::fs::read(&fused).map_err(|e| bad(format!("{FUSED_ADAM}: {e}")))?;
+        let optim =
+            FusedOptim::from_safetensors(&bytes).map_err(|e| bad(format!("{FUSED_ADAM}: {e}")))?;
+        let finite = [&optim.actor, &optim.critic]
+            .iter()
+            .all(|m| m.moment_1.iter().chain(&m.moment_2).all(|v| v.is_finite()));
+        if !finite {
+            return Err(bad(format!("{FUSED_ADAM}: non-finite moments")));
+        }
+        learner.fused_optim = Some(optim);
+    }
+    Ok(learner)
 }
 
 /// The lines of `metrics.jsonl` that a run resumed at iteration `last` keeps, and their

@@ -173,97 +173,139 @@ pub fn transplant(
             target_arch.param_count()
         )));
     }
-    const K: usize = Carry::UNITS;
-    let src = Tensors::new(source_arch);
-    let dst = Tensors::new(target_arch);
     let mut out = target_init.to_vec();
-    let d = usize::from(source_arch.obs_dim);
-    let h = usize::from(target_arch.lstm_hidden);
-    let lstm = Carry::lstm();
-    let tanh = Carry::tanh();
-    let f = |v: f64| v as f32;
-
+    let shape = Shape::new(source_arch, target_arch);
+    let dst = Tensors::new(target_arch);
     // The LSTM stack carries the source's inputs on units 3j + k.
     for layer in 0..usize::from(target_arch.lstm_layers) {
-        let input = if layer == 0 {
-            usize::from(target_arch.obs_dim)
-        } else {
-            h
-        };
-        let w_ih = dst.get_mut(&mut out, TensorKind::LstmWeightIh(layer));
-        for gate in 0..4 {
-            for u in 0..d * K {
-                row_mut(w_ih, input, gate * h + u).fill(0.0);
-            }
-        }
-        for j in 0..d {
-            for k in 0..K {
-                let row = row_mut(w_ih, input, 2 * h + j * K + k);
-                if layer == 0 {
-                    row[j] = f(lstm.scale);
-                } else {
-                    for m in 0..K {
-                        row[j * K + m] = f(lstm.scale * lstm.beta[m]);
-                    }
-                }
-            }
-        }
-        let w_hh = dst.get_mut(&mut out, TensorKind::LstmWeightHh(layer));
-        for gate in 0..4 {
-            for u in 0..d * K {
-                row_mut(w_hh, h, gate * h + u).fill(0.0);
-            }
-        }
-        let bias = dst.get_mut(&mut out, TensorKind::LstmBias(layer));
-        let read_bias = if layer == 0 {
-            0.0
-        } else {
-            lstm.scale * lstm.beta0
-        };
-        for j in 0..d {
-            for (k, c) in lstm.offsets.iter().enumerate() {
-                let u = j * K + k;
-                bias[u] = GATE_BIAS; // input gate
-                bias[h + u] = -GATE_BIAS; // forget gate
-                bias[2 * h + u] = f(read_bias + c); // cell input
-                bias[3 * h + u] = GATE_BIAS; // output gate
-            }
+        carry_inputs(&dst, &mut out, &shape, layer);
+    }
+    embed_source(&Tensors::new(source_arch), source, &dst, &mut out, &shape);
+    carry_outputs(&dst, &mut out, &shape);
+    Ok(out)
+}
+
+/// The sizes the construction works with.
+struct Shape {
+    /// The source's observation size: the values the LSTM stack carries.
+    d: usize,
+    /// The target's observation size.
+    target_obs: usize,
+    /// LSTM units per layer (0 without an LSTM).
+    h: usize,
+    /// True when the target has an LSTM stack.
+    lstm: bool,
+    /// Hidden widths of the source's MLP and of the target's head.
+    src_hidden: Vec<usize>,
+    dst_hidden: Vec<usize>,
+    /// Action values.
+    actions: usize,
+}
+
+impl Shape {
+    fn new(source: &Architecture, target: &Architecture) -> Self {
+        let widths = |a: &Architecture| a.mlp_hidden.iter().map(|&w| usize::from(w)).collect();
+        Self {
+            d: usize::from(source.obs_dim),
+            target_obs: usize::from(target.obs_dim),
+            h: usize::from(target.lstm_hidden),
+            lstm: target.lstm_layers > 0,
+            src_hidden: widths(source),
+            dst_hidden: widths(target),
+            actions: usize::from(source.action_dim),
         }
     }
 
-    // The source's layers in the head's first layers; its output either in the target's
-    // output layer or carried through the head's remaining hidden layers.
-    let src_hidden: Vec<usize> = source_arch
-        .mlp_hidden
-        .iter()
-        .map(|&w| usize::from(w))
-        .collect();
-    let dst_hidden: Vec<usize> = target_arch
-        .mlp_hidden
-        .iter()
-        .map(|&w| usize::from(w))
-        .collect();
-    let actions = usize::from(source_arch.action_dim);
-    let (m, n) = (src_hidden.len(), dst_hidden.len());
-    let dst_input = |i: usize| match i {
-        0 if target_arch.lstm_layers > 0 => h,
-        0 => usize::from(target_arch.obs_dim),
-        _ => dst_hidden[i - 1],
+    /// Inputs of the target's head layer `i`.
+    fn dst_input(&self, i: usize) -> usize {
+        match i {
+            0 if self.lstm => self.h,
+            0 => self.target_obs,
+            _ => self.dst_hidden[i - 1],
+        }
+    }
+
+    /// Inputs of the source's layer `i`.
+    fn src_input(&self, i: usize) -> usize {
+        if i == 0 {
+            self.d
+        } else {
+            self.src_hidden[i - 1]
+        }
+    }
+}
+
+/// LSTM layer `layer` carries the source's `d` inputs (layer 0: the observation's first `d`
+/// values; above: read back from the layer below's carrying units) on units `3j + k`, gates
+/// open, forget gate shut.
+fn carry_inputs(dst: &Tensors, out: &mut [f32], shape: &Shape, layer: usize) {
+    const K: usize = Carry::UNITS;
+    let (d, h) = (shape.d, shape.h);
+    let lstm = Carry::lstm();
+    let f = |v: f64| v as f32;
+    let input = if layer == 0 { shape.target_obs } else { h };
+    let w_ih = dst.get_mut(out, TensorKind::LstmWeightIh(layer));
+    for gate in 0..4 {
+        for u in 0..d * K {
+            row_mut(w_ih, input, gate * h + u).fill(0.0);
+        }
+    }
+    for j in 0..d {
+        for k in 0..K {
+            let row = row_mut(w_ih, input, 2 * h + j * K + k);
+            if layer == 0 {
+                row[j] = f(lstm.scale);
+            } else {
+                for m in 0..K {
+                    row[j * K + m] = f(lstm.scale * lstm.beta[m]);
+                }
+            }
+        }
+    }
+    let w_hh = dst.get_mut(out, TensorKind::LstmWeightHh(layer));
+    for gate in 0..4 {
+        for u in 0..d * K {
+            row_mut(w_hh, h, gate * h + u).fill(0.0);
+        }
+    }
+    let bias = dst.get_mut(out, TensorKind::LstmBias(layer));
+    let read_bias = if layer == 0 {
+        0.0
+    } else {
+        lstm.scale * lstm.beta0
     };
-    let src_input = |i: usize| if i == 0 { d } else { src_hidden[i - 1] };
+    for j in 0..d {
+        for (k, c) in lstm.offsets.iter().enumerate() {
+            let u = j * K + k;
+            bias[u] = GATE_BIAS; // input gate
+            bias[h + u] = -GATE_BIAS; // forget gate
+            bias[2 * h + u] = f(read_bias + c); // cell input
+            bias[3 * h + u] = GATE_BIAS; // output gate
+        }
+    }
+}
+
+/// The source's layers in the head's first layers; its output either in the target's output
+/// layer or, when the head is deeper, on `K` carrying units per action value.
+fn embed_source(src: &Tensors, source: &[f32], dst: &Tensors, out: &mut [f32], shape: &Shape) {
+    const K: usize = Carry::UNITS;
+    let (lstm, tanh) = (Carry::lstm(), Carry::tanh());
+    let f = |v: f64| v as f32;
+    let (m, n) = (shape.src_hidden.len(), shape.dst_hidden.len());
+    let actions = shape.actions;
     for i in 0..=m {
         let (sw, sb) = (
             src.get(source, TensorKind::LinearWeight(i)),
             src.get(source, TensorKind::LinearBias(i)),
         );
         let carried = i == m && n > m;
-        let rows = if i < m { src_hidden[i] } else { actions };
-        let cols = dst_input(i);
+        let rows = if i < m { shape.src_hidden[i] } else { actions };
+        let cols = shape.dst_input(i);
         // Each source row becomes one target row, or K carrying rows for the output.
         let mut targets = Vec::new();
         for r in 0..rows {
-            let row_in = row_of(sw, src_input(i), r);
-            let reads_carry = i == 0 && target_arch.lstm_layers > 0;
+            let row_in = row_of(sw, shape.src_input(i), r);
+            let reads_carry = i == 0 && shape.lstm;
             let mut weights = vec![0.0f64; cols];
             let mut b = f64::from(sb[r]);
             for (j, &w) in row_in.iter().enumerate() {
@@ -285,21 +327,29 @@ pub fn transplant(
                 targets.push((r, weights, b));
             }
         }
-        let w = dst.get_mut(&mut out, TensorKind::LinearWeight(i));
+        let w = dst.get_mut(out, TensorKind::LinearWeight(i));
         for (r, weights, _) in &targets {
             for (o, v) in row_mut(w, cols, *r).iter_mut().zip(weights) {
                 *o = f(*v);
             }
         }
-        let b = dst.get_mut(&mut out, TensorKind::LinearBias(i));
+        let b = dst.get_mut(out, TensorKind::LinearBias(i));
         for (r, _, bias) in &targets {
             b[*r] = f(*bias);
         }
     }
-    // The carried outputs through the remaining hidden layers, read back at the output.
+}
+
+/// The carried outputs through the head's remaining hidden layers, read back at the output.
+fn carry_outputs(dst: &Tensors, out: &mut [f32], shape: &Shape) {
+    const K: usize = Carry::UNITS;
+    let tanh = Carry::tanh();
+    let f = |v: f64| v as f32;
+    let (m, n) = (shape.src_hidden.len(), shape.dst_hidden.len());
+    let actions = shape.actions;
     for i in (m + 1..=n).filter(|_| n > m) {
-        let cols = dst_hidden[i - 1];
-        let w = dst.get_mut(&mut out, TensorKind::LinearWeight(i));
+        let cols = shape.dst_hidden[i - 1];
+        let w = dst.get_mut(out, TensorKind::LinearWeight(i));
         let mut biases = Vec::new();
         for r in 0..actions {
             let read = |k: usize| r * K + k;
@@ -321,12 +371,11 @@ pub fn transplant(
                 }
             }
         }
-        let b = dst.get_mut(&mut out, TensorKind::LinearBias(i));
+        let b = dst.get_mut(out, TensorKind::LinearBias(i));
         for (r, v) in biases {
             b[r] = f(v);
         }
     }
-    Ok(out)
 }
 
 /// Refuses a pair the construction does not cover, naming the first misfit.

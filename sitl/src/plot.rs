@@ -65,27 +65,7 @@ pub fn grid(charts: &[String], columns: usize) -> String {
 /// A line chart of `series` in a 640 × 400 SVG with axes, ticks, labels and a legend.
 pub fn line_chart(title: &str, x_label: &str, y_label: &str, series: &[Series]) -> String {
     let (w, h, l, r, t, b) = (640.0, 400.0, 70.0, 20.0, 40.0, 50.0);
-    let finite = series
-        .iter()
-        .flat_map(|s| s.points.iter())
-        .filter(|(x, y)| x.is_finite() && y.is_finite());
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for &(x, y) in finite {
-        x0 = x0.min(x);
-        x1 = x1.max(x);
-        y0 = y0.min(y);
-        y1 = y1.max(y);
-    }
-    if x0 > x1 {
-        (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
-    }
-    if x1 - x0 < 1e-12 {
-        x1 = x0 + 1.0;
-    }
-    if y1 - y0 < 1e-12 {
-        y0 -= 0.5;
-        y1 += 0.5;
-    }
+    let (x0, x1, y0, y1) = bounds(series);
     let sx = |x: f64| l + (x - x0) / (x1 - x0) * (w - l - r);
     let sy = |y: f64| h - b - (y - y0) / (y1 - y0) * (h - t - b);
     let mut svg = String::new();
@@ -165,8 +145,46 @@ pub fn line_chart(title: &str, x_label: &str, y_label: &str, series: &[Series]) 
             pts.join(" ")
         );
     }
-    // The legend goes in the corner of the plot where it covers the fewest drawn points,
-    // on a white panel.
+    legend(&mut svg, series, &drawn, (w, h, l, r, t, b));
+    svg + "</svg>\n"
+}
+
+/// The data's extent over every finite point, `(x0, x1, y0, y1)`, widened where it is empty
+/// or flat.
+fn bounds(series: &[Series]) -> (f64, f64, f64, f64) {
+    let finite = series
+        .iter()
+        .flat_map(|s| s.points.iter())
+        .filter(|(x, y)| x.is_finite() && y.is_finite());
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for &(x, y) in finite {
+        x0 = x0.min(x);
+        x1 = x1.max(x);
+        y0 = y0.min(y);
+        y1 = y1.max(y);
+    }
+    if x0 > x1 {
+        (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+    }
+    if x1 - x0 < 1e-12 {
+        x1 = x0 + 1.0;
+    }
+    if y1 - y0 < 1e-12 {
+        y0 -= 0.5;
+        y1 += 0.5;
+    }
+    (x0, x1, y0, y1)
+}
+
+/// The legend, in the corner of the plot (`frame`: width, height and the left, right, top
+/// and bottom margins) where it covers the fewest `drawn` points, on a white panel.
+fn legend(
+    svg: &mut String,
+    series: &[Series],
+    drawn: &[(f64, f64)],
+    frame: (f64, f64, f64, f64, f64, f64),
+) {
+    let (w, h, l, r, t, b) = frame;
     let text_w = series
         .iter()
         .map(|s| s.name.chars().count())
@@ -213,7 +231,6 @@ pub fn line_chart(title: &str, x_label: &str, y_label: &str, series: &[Series]) 
             escape(&s.name)
         );
     }
-    svg + "</svg>\n"
 }
 
 fn fmt_tick(v: f64, step: f64) -> String {
