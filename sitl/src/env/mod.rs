@@ -24,18 +24,19 @@ use crate::world::{Drone, World};
 use firmware_core::Controller;
 use firmware_core::baseline::BaselineController;
 
-use firmware_core::mirror::{TrackMirror, observe_folded, unfold_action};
+use firmware_core::mirror::{TrackMirror, unfold_action};
 use firmware_core::nn::{ACTION_DIM, LANES};
-use firmware_core::observation::{Observation, ObservationError, ObservationSpec};
+use firmware_core::observation::ObservationSpec;
 use firmware_core::policy::Policy;
 use firmware_core::track::CrashRules;
-use firmware_core::vehicle::{ActionMap, MotorCommand, VehicleState};
+use firmware_core::vehicle::{ActionMap, MotorCommand};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
 mod config;
 mod error;
+mod observe;
 mod opponent;
 pub mod reward;
 pub mod snapshot;
@@ -48,6 +49,7 @@ pub use config::{
     Task,
 };
 pub use error::{ActionShapeError, EnvError, EpisodeStepsError};
+use observe::{ego_observation, observe, observe_drones};
 use opponent::Race;
 pub use opponent::{MAX_BLOB_BYTES, interned, read_blob};
 pub use reward::{Competition, RewardTerms, RewardWeights, dense_competition};
@@ -650,80 +652,5 @@ fn step_slot(
         crashed,
         timed_out,
         opponent_crashed: opponent_only,
-    }
-}
-
-/// The ego's observation of its slot, folded by `fold` (the env's, when its spec is
-/// folded), through its sensor noise when randomised; zeros when the pipeline refuses the
-/// state.
-fn observe(
-    world: &World,
-    spec: &ObservationSpec,
-    fold: Option<&TrackMirror>,
-    slot: &mut Slot,
-    out: &mut [f32],
-) {
-    let own = slot.drones[0].body.state;
-    let own = match &mut slot.perturbed {
-        Some(p) => p.sense(own),
-        None => own,
-    };
-    match ego_observation_of(world, spec, fold, slot, &own, slot.opponent.is_some()) {
-        Ok((o, _)) => out.copy_from_slice(o.as_slice()),
-        // Only a diverged state fails, and a diverged state is a crash that was respawned.
-        Err(_) => out.fill(0.0),
-    }
-}
-
-/// The ego's observation in `slot` through `fold` (and whether it is the mirror image), with
-/// the opponent in it when `racing`.
-fn ego_observation(
-    world: &World,
-    spec: &ObservationSpec,
-    fold: Option<&TrackMirror>,
-    slot: &Slot,
-    racing: bool,
-) -> Result<(Observation, bool), ObservationError> {
-    ego_observation_of(world, spec, fold, slot, &slot.drones[0].body.state, racing)
-}
-
-/// [`ego_observation`] with the ego's state as `own` (its sensors' reading of it).
-fn ego_observation_of(
-    world: &World,
-    spec: &ObservationSpec,
-    fold: Option<&TrackMirror>,
-    slot: &Slot,
-    own: &VehicleState,
-    racing: bool,
-) -> Result<(Observation, bool), ObservationError> {
-    let [d, opp] = &slot.drones;
-    observe_folded(
-        spec,
-        fold,
-        &world.track,
-        own,
-        d.progress.target,
-        &slot.previous_action,
-        racing.then_some(&opp.body.state),
-    )
-}
-
-/// The ego's observation (`drones[0]`, after `previous_action`), with `drones[1]` as the
-/// opponent when `racing`; zeros when the pipeline refuses the state.
-fn observe_drones(
-    world: &World,
-    spec: &ObservationSpec,
-    drones: &[Drone; 2],
-    previous_action: &[f32; ACTION_DIM],
-    racing: bool,
-    out: &mut [f32],
-) {
-    let [d, opp] = drones;
-    let gate = world.track.gate(d.progress.target);
-    let opponent = racing.then_some(&opp.body.state);
-    match spec.observe(&d.body.state, &gate, previous_action, opponent) {
-        Ok(o) => out.copy_from_slice(o.as_slice()),
-        // Only a diverged state fails, and a diverged state is a crash that was respawned.
-        Err(_) => out.fill(0.0),
     }
 }
