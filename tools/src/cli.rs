@@ -36,9 +36,10 @@ pub enum Command {
     },
     /// Build the Cortex-M4 size images and report their flash and RAM (bytes).
     ///
-    /// The images: rows A and G in f32, and G in int8 linked against the STM32F405's memory
-    /// map (profile `firmware`); their flash and RAM are read from the ELF and set against an
-    /// STM32F405 (1 MB flash; 128 KB SRAM + 64 KB CCM).
+    /// The images: rows A and G in f32 (synthetic weights), and the shipped stage-1 and
+    /// stage-2 policies in int8 linked against the STM32F405's memory map (profile
+    /// `firmware`); their flash and RAM are read from the ELF and set against an STM32F405
+    /// (1 MB flash; 128 KB SRAM + 64 KB CCM).
     SizeReport,
     /// Re-encode a blob in another weight dtype.
     ///
