@@ -238,6 +238,12 @@ pub struct RunConfig {
     /// with `keep_best`, pick seeds the final evaluation does not use.
     #[serde(default, skip_serializing_if = "is_zero_u64")]
     pub eval_seed: u64,
+    /// Races only: fly the in-training evaluation from jittered starts (`sitl eval --jitter`:
+    /// 5 cm, 5°, 0.2 m/s). The nominal race spawn is one deterministic flight per gate, so
+    /// 20 nominal races are six flights re-weighted, and the referee's best of many
+    /// evaluations is chosen on those six (docs/journal/stage2.md). Default off.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub eval_jitter: bool,
     /// Export the evaluated actor the referee scored best (highest success rate, then the
     /// lower crash rate, then the earlier iteration) instead of the last one. Default off.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]

@@ -33,9 +33,23 @@ pub fn referee_eval(blob: &[u8], preset: Preset, config: &TrainConfig) -> Option
         } else {
             SpawnMode::Stage1
         }),
-        perturbation: sitl::perturb::Perturbation::NONE,
+        perturbation: eval_perturbation(config, opponent.is_some()),
     };
     Some(report(&spec, opponent.as_ref(), &eval))
+}
+
+/// The referee's perturbation during training: the standard start jitter for a race with
+/// `run.eval_jitter`, else none (the nominal flight).
+pub fn eval_perturbation(config: &TrainConfig, race: bool) -> sitl::perturb::Perturbation {
+    use sitl::perturb::{Perturbation, StartJitter};
+    if race && config.run.eval_jitter {
+        Perturbation {
+            jitter: StartJitter::STANDARD,
+            ..Perturbation::NONE
+        }
+    } else {
+        Perturbation::NONE
+    }
 }
 
 /// Whether the referee scored evaluation `a` better than `b` (`run.keep_best`): the higher
@@ -152,6 +166,19 @@ mod tests {
         assert!(referee_prefers(&history[2], &history[0]));
         assert!(!referee_prefers(&history[4], &history[3]));
         assert!(best_evaluation(&history[1..2], &run).is_none());
+    }
+
+    #[test]
+    fn eval_jitter_jitters_race_evaluations_only() {
+        let mut config =
+            crate::config::TrainConfig::parse(include_str!("../configs/smoke_race.toml"))
+                .expect("the smoke race config");
+        assert!(eval_perturbation(&config, true).is_none());
+        config.run.eval_jitter = true;
+        let p = eval_perturbation(&config, true);
+        assert_eq!(p.jitter, sitl::perturb::StartJitter::STANDARD);
+        assert!(p.validate().is_ok());
+        assert!(eval_perturbation(&config, false).is_none());
     }
 
     #[test]

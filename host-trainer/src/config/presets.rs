@@ -106,6 +106,7 @@ impl Default for RunConfig {
             eval_every: default_eval_every(),
             eval_races: default_eval_races(),
             eval_seed: 0,
+            eval_jitter: false,
             keep_best: false,
             select: None,
         }
