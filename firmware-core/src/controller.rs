@@ -135,11 +135,21 @@ pub struct Controller<'w> {
 /// 1.5 KB, and the Cortex-M test image checks both measured marks against the model.
 pub const STEP_FRAME_ALLOWANCE_BYTES: usize = 1536;
 
+/// The modelled stack of one row-A step (bytes): its MLP's activations plus
+/// [`STEP_FRAME_ALLOWANCE_BYTES`]. The Cortex-M images export it for `tools size-report`.
+pub const STEP_STACK_A_BYTES: usize =
+    <crate::nn::Mlp2<'static, 17, 128, 128> as crate::nn::Head<'static, 17>>::SCRATCH_BYTES
+        + STEP_FRAME_ALLOWANCE_BYTES;
+
+/// The modelled stack of one row-G step (bytes): [`crate::policy::PolicyG::SCRATCH_BYTES`]
+/// plus [`STEP_FRAME_ALLOWANCE_BYTES`].
+pub const STEP_STACK_G_BYTES: usize =
+    crate::policy::PolicyG::SCRATCH_BYTES + STEP_FRAME_ALLOWANCE_BYTES;
+
 /// RAM of a row-G controller (bytes): the controller itself (recurrent state, weight views,
 /// bookkeeping) plus the stack one step uses (its activations and frames).
-pub const CONTROLLER_G_RAM_BYTES: usize = core::mem::size_of::<Controller<'static>>()
-    + crate::policy::PolicyG::SCRATCH_BYTES
-    + STEP_FRAME_ALLOWANCE_BYTES;
+pub const CONTROLLER_G_RAM_BYTES: usize =
+    core::mem::size_of::<Controller<'static>>() + STEP_STACK_G_BYTES;
 
 // The recurrent controller's RAM budget: state plus scratch <= 8 KB.
 const _: () = assert!(CONTROLLER_G_RAM_BYTES <= 8 * 1024);

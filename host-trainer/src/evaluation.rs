@@ -41,12 +41,9 @@ pub fn referee_eval(blob: &[u8], preset: Preset, config: &TrainConfig) -> Option
 /// The referee's perturbation during training: the standard start jitter for a race with
 /// `run.eval_jitter`, else none (the nominal flight).
 pub fn eval_perturbation(config: &TrainConfig, race: bool) -> sitl::perturb::Perturbation {
-    use sitl::perturb::{Perturbation, StartJitter};
+    use sitl::perturb::Perturbation;
     if race && config.run.eval_jitter {
-        Perturbation {
-            jitter: StartJitter::STANDARD,
-            ..Perturbation::NONE
-        }
+        Perturbation::JITTERED
     } else {
         Perturbation::NONE
     }

@@ -249,6 +249,13 @@ impl Perturbation {
         },
     };
 
+    /// The nominal flight from jittered starts ([`StartJitter::STANDARD`], `--jitter` alone):
+    /// the base of the robustness levels and of a trainer's jittered evaluation.
+    pub const JITTERED: Self = Self {
+        jitter: StartJitter::STANDARD,
+        ..Self::NONE
+    };
+
     /// True for [`Perturbation::NONE`] (and anything equal to it).
     pub fn is_none(&self) -> bool {
         *self == Self::NONE

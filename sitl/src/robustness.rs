@@ -3,12 +3,12 @@
 //! kind of perturbation the largest level it survives.
 //!
 //! Every level except the first includes the standard start jitter
-//! ([`StartJitter::STANDARD`]), so that no row is one deterministic flight repeated.
+//! ([`StartJitter::STANDARD`](crate::perturb::StartJitter::STANDARD)), so that no row is one deterministic flight repeated.
 //! "Survives" means a success rate of at least [`SURVIVAL_SUCCESS`] at that level and every
 //! smaller one of its ladder.
 
 use crate::eval::{EvalConfig, Report, report};
-use crate::perturb::{Perturbation, StartJitter};
+use crate::perturb::Perturbation;
 use crate::pilot::PilotSpec;
 use serde::Serialize;
 
@@ -25,10 +25,7 @@ pub struct Level {
 }
 
 fn level(name: &str, spec: &str) -> Level {
-    let jittered = Perturbation {
-        jitter: StartJitter::STANDARD,
-        ..Perturbation::NONE
-    };
+    let jittered = Perturbation::JITTERED;
     Level {
         name: name.to_string(),
         // The specs below are constants of this module; `rows_parse` tests them.
@@ -306,6 +303,7 @@ impl Robustness {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::perturb::StartJitter;
 
     #[test]
     fn rows_parse() {

@@ -119,8 +119,7 @@ fn main() {
         let blob = convert_bytes(&source, WeightDtype::I8)
             .unwrap_or_else(|e| panic!("{what}: int8 conversion: {e}"));
         shipped_total += blob.len();
-        let commands =
-            controller_commands(&blob, slot.row).unwrap_or_else(|e| panic!("{what}: {e}"));
+        let commands = controller_commands(&blob).unwrap_or_else(|e| panic!("{what}: {e}"));
         write(&out.join(format!("shipped_{n}.bin")), &blob);
         write(
             &out.join(format!("shipped_{n}.txt")),
@@ -157,15 +156,21 @@ fn main() {
 }
 
 /// The rotor commands (4 f32 rpm per step) of the host's `Controller` on `blob` over
-/// `fixtures::flight`; the opponent is given to the rows that observe one.
-fn controller_commands(blob: &[u8], row: TableRow) -> Result<Vec<u8>, String> {
+/// `fixtures::flight`; the opponent is given when the blob's observation has one.
+fn controller_commands(blob: &[u8]) -> Result<Vec<u8>, String> {
     let aligned = AlignedBytes::new(blob);
+    let observes_opponent = Blob::parse(aligned.as_bytes())
+        .map_err(|e| e.to_string())?
+        .header()
+        .observation
+        .layout
+        .needs_opponent();
     let mut controller = Controller::from_bytes(aligned.as_bytes(), Track::figure_eight())
         .map_err(|e| e.to_string())?;
     let mut out = Vec::new();
     for i in 0..fixtures::FLIGHT_STEPS {
         let (own, opponent) = fixtures::flight(i);
-        let opponent = (row != TableRow::A).then_some(&opponent);
+        let opponent = observes_opponent.then_some(&opponent);
         let step = controller.step(&own, opponent);
         if let Some(fault) = step.fault {
             return Err(format!("step {i}: the controller faulted: {fault:?}"));

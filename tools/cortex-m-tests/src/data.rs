@@ -94,28 +94,24 @@ pub static OBSERVATION_EXPECTED: &[u8] =
 pub static OVERTAKE_CONTROLLER_BYTES: u32 =
     core::mem::size_of::<firmware_core::Controller<'static>>() as u32;
 
-/// Stack one row-A step uses, as modelled: `Head::SCRATCH_BYTES` of its MLP head plus
-/// `STEP_FRAME_ALLOWANCE_BYTES`, on this target (symbol `OVERTAKE_SCRATCH_A_BYTES`).
+/// Stack one row-A step uses, as modelled (`controller::STEP_STACK_A_BYTES`), on this
+/// target (symbol `OVERTAKE_SCRATCH_A_BYTES`).
 #[unsafe(no_mangle)]
-pub static OVERTAKE_SCRATCH_A_BYTES: u32 =
-    (<firmware_core::nn::Mlp2<'static, 17, 128, 128> as firmware_core::nn::Head<'static, 17>>::SCRATCH_BYTES
-        + firmware_core::controller::STEP_FRAME_ALLOWANCE_BYTES) as u32;
+pub static OVERTAKE_SCRATCH_A_BYTES: u32 = firmware_core::controller::STEP_STACK_A_BYTES as u32;
 
-/// Stack one row-G step uses, as modelled: `PolicyG::SCRATCH_BYTES` plus
-/// `STEP_FRAME_ALLOWANCE_BYTES`, on this target
-/// (symbol `OVERTAKE_SCRATCH_G_BYTES`).
+/// Stack one row-G step uses, as modelled (`controller::STEP_STACK_G_BYTES`), on this
+/// target (symbol `OVERTAKE_SCRATCH_G_BYTES`).
 #[unsafe(no_mangle)]
-pub static OVERTAKE_SCRATCH_G_BYTES: u32 = (firmware_core::policy::PolicyG::SCRATCH_BYTES
-    + firmware_core::controller::STEP_FRAME_ALLOWANCE_BYTES)
-    as u32;
+pub static OVERTAKE_SCRATCH_G_BYTES: u32 = firmware_core::controller::STEP_STACK_G_BYTES as u32;
 
 /// One shipped policy of the STM32F405 image (`tools/stm32f405-fit/policy_source.rs`), in
-/// int8, with the host controller's rotor commands over `fixtures::flight`.
+/// int8, with the host controller's rotor commands over `fixtures::flight` (the opponent
+/// given when the blob's observation has one).
 pub struct Shipped {
+    /// Its slot, as a test name writes it: "stage1", "stage2".
+    pub slot: &'static str,
     /// What it is (role, path, row).
     pub what: &'static str,
-    /// True for the rows that observe the opponent.
-    pub observes_opponent: bool,
     /// The int8 blob.
     pub blob: &'static [u8],
     /// The host's commands: 4 f32 rpm per flight step, little-endian.
@@ -125,14 +121,14 @@ pub struct Shipped {
 /// The stage-1 (row A) and the stage-2 (row G) policies the STM32F405 image holds.
 pub static SHIPPED: [Shipped; 2] = [
     Shipped {
+        slot: "stage1",
         what: include_str!(concat!(env!("OUT_DIR"), "/shipped_1.txt")),
-        observes_opponent: false,
         blob: aligned_out_dir_bytes!("shipped_1.bin"),
         commands: include_bytes!(concat!(env!("OUT_DIR"), "/shipped_1_commands.bin")),
     },
     Shipped {
+        slot: "stage2",
         what: include_str!(concat!(env!("OUT_DIR"), "/shipped_2.txt")),
-        observes_opponent: true,
         blob: aligned_out_dir_bytes!("shipped_2.bin"),
         commands: include_bytes!(concat!(env!("OUT_DIR"), "/shipped_2_commands.bin")),
     },

@@ -53,16 +53,12 @@ pub static OVERTAKE_CONTROLLER_BYTES: u32 =
 /// The modelled stack of one row-A step (activations plus the frame allowance).
 #[cfg(target_os = "none")]
 #[unsafe(no_mangle)]
-pub static OVERTAKE_SCRATCH_A_BYTES: u32 =
-    (<firmware_core::nn::Mlp2<'static, 17, 128, 128> as firmware_core::nn::Head<'static, 17>>::SCRATCH_BYTES
-        + firmware_core::controller::STEP_FRAME_ALLOWANCE_BYTES) as u32;
+pub static OVERTAKE_SCRATCH_A_BYTES: u32 = firmware_core::controller::STEP_STACK_A_BYTES as u32;
 
 /// The modelled stack of one row-G step (activations plus the frame allowance).
 #[cfg(target_os = "none")]
 #[unsafe(no_mangle)]
-pub static OVERTAKE_SCRATCH_G_BYTES: u32 = (firmware_core::policy::PolicyG::SCRATCH_BYTES
-    + firmware_core::controller::STEP_FRAME_ALLOWANCE_BYTES)
-    as u32;
+pub static OVERTAKE_SCRATCH_G_BYTES: u32 = firmware_core::controller::STEP_STACK_G_BYTES as u32;
 
 #[cfg(target_os = "none")]
 #[cortex_m_rt::entry]

@@ -73,13 +73,12 @@ mod bench {
         let a8 = controller_steps(&counter, "row A int8", BLOB_A_I8, TARGET_A);
         let g8 = controller_steps(&counter, "row G int8", BLOB_G_I8, TARGET_G_I8);
         let mut within_budget = true;
-        for (n, shipped) in SHIPPED.iter().enumerate() {
-            let role = if n == 0 { "stage 1" } else { "stage 2" };
+        for shipped in &SHIPPED {
             hprintln!("{}", shipped.what);
-            let steps = controller_steps(&counter, role, shipped.blob, STEP_BUDGET_CYCLES);
+            let steps = controller_steps(&counter, shipped.slot, shipped.blob, STEP_BUDGET_CYCLES);
             hprintln!(
                 "{}: {} instructions/step = {}.{:02} % of the {} cycles of one 50 Hz step at 168 MHz ({}x headroom at one cycle per instruction)",
-                role,
+                shipped.slot,
                 steps,
                 100 * steps / STEP_BUDGET_CYCLES,
                 (10_000 * steps / STEP_BUDGET_CYCLES) % 100,
