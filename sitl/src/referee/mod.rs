@@ -35,7 +35,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 mod trace;
-pub use trace::{OvertakeMark, TRACES_FORMAT, Trace};
+pub use trace::{OvertakeMark, TRACES_FORMAT, Trace, TraceEvent, TraceEventKind};
 
 /// Seconds an overtaking ego must keep its lead for the overtake to be sustained.
 pub const SUSTAINED_LEAD_S: f32 = 2.0;
@@ -581,9 +581,10 @@ pub fn run_crew<const N: usize>(
         }
         let results = world.step_airframes(&mut drones, &commands, &airframes);
         if record {
-            trace.ego_m.push(drones[0].position_m());
-            if let Some(o) = drones.get(1) {
-                trace.opponent_m.push(o.position_m());
+            trace.record_states(&drones);
+            trace.record_events(k + 1, &results);
+            if N == 2 {
+                trace.lead_m.push(referee.lead_m(&drones));
             }
         }
         let (overtakes, sustained) = {
