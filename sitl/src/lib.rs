@@ -18,6 +18,7 @@
 //! | [`frames`] | ENU/FLU to NED/FRD conversions, for the bridge and for in-process pilots alike |
 //! | [`bridge`] | MAVLink lockstep races: a controller as an endpoint, the simulator as the clock, the ground station, framing and signing |
 //! | [`plot`] | standalone SVG plots: learning curves, the top-down view of a race |
+//! | [`replay`] | the 3-D replay of recorded episodes: one self-contained HTML page (three.js) |
 //! | [`files`] | atomic file writes |
 //! | [`shipped`] | the shipped policies the commands fly when none is named |
 //!
@@ -39,6 +40,7 @@ pub mod pilot;
 pub mod plot;
 pub mod quant;
 pub mod referee;
+pub mod replay;
 pub mod robustness;
 pub mod shipped;
 pub mod stats;

@@ -22,6 +22,10 @@ pub struct EvalArgs {
     /// Also draw the first episode from above (paths and gates) as SVG to this file.
     #[arg(long)]
     plot: Option<PathBuf>,
+    /// Also write every episode as a 3-D replay to this file: one self-contained HTML page
+    /// (drones, gates, a timeline of the events, speed and lead) that opens in any browser.
+    #[arg(long, value_name = "FILE.html")]
+    replay: Option<PathBuf>,
 }
 
 /// Runs `sitl eval`.
@@ -31,12 +35,18 @@ pub fn run(args: EvalArgs) -> Result<(), String> {
     let (ego, opponent) = contest.pilots()?;
     let config = contest.eval_config();
     let started = std::time::Instant::now();
-    let record = args.plot.is_some() || contest.scoring.trace.is_some();
+    let record = args.plot.is_some() || contest.scoring.trace.is_some() || args.replay.is_some();
     let episodes = evaluate(&ego, opponent.as_ref(), &config, record);
     let pilots: Vec<String> = core::iter::once(ego.describe())
         .chain(opponent.as_ref().map(PilotSpec::describe))
         .collect();
     contest.scoring.write_traces(&pilots, &preset, &episodes)?;
+    if let Some(path) = &args.replay {
+        let world = config.world(opponent.is_some());
+        contest
+            .scoring
+            .write_replay(path, &world.track, &pilots, &preset, &episodes)?;
+    }
     if let (Some(path), Some(first)) = (&args.plot, episodes.first()) {
         let title = format!(
             "{}{}, episode 0 ({} preset, seed {})",

@@ -155,6 +155,44 @@ impl Scoring {
     }
 }
 
+impl Scoring {
+    /// Writes the recorded episodes to `path` as a 3-D replay ([`sitl::replay`]), the
+    /// pilots named by their files' names.
+    pub fn write_replay(
+        &self,
+        path: &Path,
+        track: &firmware_core::track::Track<'_>,
+        pilots: &[String],
+        preset: &Preset,
+        episodes: &[sitl::referee::Episode],
+    ) -> Result<(), String> {
+        let short: Vec<&str> = pilots
+            .iter()
+            .map(|p| p.rsplit(['/', '\\']).next().unwrap_or(p))
+            .collect();
+        let title = format!(
+            "{} ({} preset, seed {})",
+            short.join(" vs "),
+            preset.name,
+            self.seed
+        );
+        let info = sitl::replay::ReplayInfo {
+            title: &title,
+            pilots,
+            preset: preset.name,
+            seed: self.seed,
+        };
+        let page = sitl::replay::html(&sitl::replay::replay_json(track, &info, episodes));
+        write_quietly(path, page.as_bytes())?;
+        eprintln!(
+            "wrote {} ({:.1} MB: open it in a browser)",
+            path.display(),
+            page.len() as f64 / 1e6
+        );
+        Ok(())
+    }
+}
+
 /// The pilot `spec` names (a blob or `baseline[...]`), tuned to `preset`; errors name
 /// `flag`.
 pub fn load(spec: &str, preset: &Preset, flag: &str) -> Result<PilotSpec, String> {

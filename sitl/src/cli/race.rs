@@ -33,6 +33,13 @@ pub struct RaceArgs {
     /// Do not draw the plot.
     #[arg(long)]
     no_plot: bool,
+    /// The 3-D replay of every episode: one self-contained HTML page (drones, gates, a
+    /// timeline of the events, speed and lead) that opens in any browser.
+    #[arg(long, value_name = "FILE.html", default_value = "race.html")]
+    replay: PathBuf,
+    /// Do not write the replay.
+    #[arg(long)]
+    no_replay: bool,
     /// Pace the race at wall-clock speed, for a ground station to watch.
     #[arg(long)]
     realtime: bool,
@@ -145,7 +152,7 @@ fn config(args: &RaceArgs) -> Result<RaceConfig, String> {
     config.gcs_rate_hz = args.gcs_rate_hz;
     config.realtime = args.realtime;
     config.tlog = !args.no_tlog;
-    config.record = !args.no_plot || args.contest.scoring.trace.is_some();
+    config.record = !args.no_plot || !args.no_replay || args.contest.scoring.trace.is_some();
     config.step_timeout = std::time::Duration::from_millis(args.step_timeout_ms);
     Ok(config)
 }
@@ -204,6 +211,16 @@ fn write_outputs(
     }
     let pilots: Vec<String> = entrants.iter().map(|e| e.pilot.describe()).collect();
     scoring.write_traces(&pilots, preset, &outcome.episodes)?;
+    if !args.no_replay {
+        let world = config.eval.world(entrants.len() == 2);
+        scoring.write_replay(
+            &args.replay,
+            &world.track,
+            &pilots,
+            preset,
+            &outcome.episodes,
+        )?;
+    }
     if let (false, Some(first)) = (args.no_plot, outcome.episodes.first()) {
         let title = format!(
             "{} over MAVLink, episode 0 ({} preset, seed {})",
