@@ -470,3 +470,22 @@ fn environment_errors_name_the_field() {
         assert!(e.contains(field), "{to}: {e}");
     }
 }
+
+/// The blessed stage-2 path is the config that made what `sitl race` flies:
+/// `configs/stage2_transplant.toml` is, parsed, the run's own `config.toml` beside
+/// `policies/stage2_transplant.blob` (whose provenance `shipped_policies.rs` checks against
+/// it), and it starts from the stage-1 blob that `configs/stage1.toml` makes.
+#[test]
+fn the_blessed_stage2_config_is_the_one_that_made_the_shipped_race_ego() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let blessed =
+        TrainConfig::load(&root.join("host-trainer/configs/stage2_transplant.toml")).unwrap();
+    let made = TrainConfig::load(&root.join("policies/stage2_transplant/config.toml")).unwrap();
+    assert_eq!(blessed, made);
+    assert_eq!(blessed.hash(), made.hash());
+    let warm = blessed.warm_start.as_ref().unwrap();
+    assert!(warm.transplant && warm.rounds == 0);
+    assert_eq!(warm.teacher_blob.as_deref(), Some("policies/stage1.blob"));
+    let stage1 = TrainConfig::parse(STAGE1).unwrap();
+    assert_eq!(stage1.run.name, "stage1");
+}
