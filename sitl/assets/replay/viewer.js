@@ -82,7 +82,9 @@
   $('#bar h1').textContent = data.title;
   data.episodes.forEach((e, i) => {
     const o = document.createElement('option');
-    o.value = i; o.textContent = `${i} (${e.metrics.sustained_overtakes}/${e.metrics.overtakes} overtakes)`;
+    const m = e.metrics;
+    o.value = i;
+    o.textContent = e.opponent ? `${i} (${m.sustained_overtakes}/${m.overtakes} overtakes held)` : `${i} (${m.lap_times_s.length} laps, ${m.crashes} crashes)`;
     $('#episode').appendChild(o);
   });
 
