@@ -53,6 +53,18 @@ pub struct ReplayInfo<'a> {
     pub seed: u64,
 }
 
+/// A pilot's description without the directories of its file: "/a/b/stage1.blob (stage1)"
+/// becomes "stage1.blob (stage1)"; "baseline (7.0 m/s cruise)" stays as it is.
+pub fn short_name(pilot: &str) -> String {
+    let (file, rest) = pilot.split_once(' ').unwrap_or((pilot, ""));
+    let file = file.rsplit(['/', '\\']).next().unwrap_or(file);
+    if rest.is_empty() {
+        file.to_string()
+    } else {
+        format!("{file} {rest}")
+    }
+}
+
 /// The replay's JSON of `episodes` flown on `track` (each must have been recorded).
 pub fn replay_json(
     track: &Track<'_>,
@@ -111,7 +123,10 @@ fn episode_json(e: &Episode) -> serde_json::Value {
             &t.lead_m.iter().map(|l| l.unwrap_or(f32::NAN)).collect::<Vec<_>>(),
         )),
         "respawns": t.respawns,
-        "overtakes": t.to_json()["overtakes"],
+        "overtakes": t.overtakes.iter().map(|m| serde_json::json!({
+            "step": m.step,
+            "sustained": m.sustained,
+        })).collect::<Vec<_>>(),
         "events": t.events.iter().map(crate::referee::TraceEvent::to_json).collect::<Vec<_>>(),
         "metrics": {
             "sim_seconds": m.sim_seconds,
@@ -242,23 +257,48 @@ pub fn trace(json: &serde_json::Value, index: usize) -> Result<Trace, String> {
         let speed = v.chunks_exact(STATE_FLOATS).map(|s| s[7]);
         (pos.collect(), att.collect(), speed.collect())
     };
-    let (ego_m, ego_attitude, ego_speed_mps) = split(&drone("ego")?.unwrap_or_default());
-    let (opponent_m, opponent_attitude, opponent_speed_mps) =
-        split(&drone("opponent")?.unwrap_or_default());
-    let lead_m = drone("lead_m")?
-        .unwrap_or_default()
+    let steps = e["steps"]
+        .as_u64()
+        .and_then(|n| usize::try_from(n).ok())
+        .ok_or_else(|| format!("episode {index} has no step count"))?;
+    let states = |key: &str, required: bool| -> Result<Vec<f32>, String> {
+        match drone(key)? {
+            Some(v) if v.len() == steps * STATE_FLOATS => Ok(v),
+            Some(v) => Err(format!(
+                "episode {index}: {key} holds {} values, not {STATE_FLOATS} for each of {steps} steps",
+                v.len()
+            )),
+            None if required => Err(format!("episode {index} has no {key} states")),
+            None => Ok(Vec::new()),
+        }
+    };
+    let (ego_m, ego_attitude, ego_speed_mps) = split(&states("ego", true)?);
+    let (opponent_m, opponent_attitude, opponent_speed_mps) = split(&states("opponent", false)?);
+    let lead = drone("lead_m")?.unwrap_or_default();
+    if !lead.is_empty() && lead.len() != steps {
+        return Err(format!(
+            "episode {index}: lead_m holds {} values for {steps} steps",
+            lead.len()
+        ));
+    }
+    let lead_m = lead
         .into_iter()
         .map(|l| (!l.is_nan()).then_some(l))
         .collect();
+    let dt_s = json["dt_s"]
+        .as_f64()
+        .ok_or("the replay has no control period (dt_s)")?;
     let mut events = serde_json::json!({
-        "dt_s": json["dt_s"],
+        "dt_s": dt_s,
         "ego_m": [],
         "opponent_m": [],
         "respawns": e["respawns"],
         "overtakes": e["overtakes"],
         "events": e["events"],
     });
-    let rest = Trace::from_json(&events.take()).ok_or("the episode's events do not parse")?;
+    let rest = Trace::from_json(&events.take()).ok_or_else(|| {
+        format!("episode {index}: its respawns, overtakes or events do not parse")
+    })?;
     Ok(Trace {
         ego_m,
         opponent_m,

@@ -7,7 +7,7 @@ use sitl::eval::{EvalConfig, evaluate};
 use sitl::perturb::Perturbation;
 use sitl::pilot::PilotSpec;
 use sitl::referee::{Episode, Trace, TraceEventKind};
-use sitl::replay::{ReplayInfo, html, read, replay_json, trace};
+use sitl::replay::{ReplayInfo, html, read, replay_json, short_name, trace};
 use sitl::world::World;
 
 const STAGE1: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../policies/stage1.blob");
@@ -30,7 +30,7 @@ fn fly(opponent: Option<&str>, episodes: u32) -> (World, Vec<Episode>) {
 
 fn page(world: &World, pilots: &[String], episodes: &[Episode]) -> String {
     let info = ReplayInfo {
-        title: "test",
+        title: "a <b>race</b> & more",
         pilots,
         preset: "paper",
         seed: 5,
@@ -100,6 +100,11 @@ fn the_events_are_the_referees_counts() {
         all > 20,
         "the ego passed {all} gates: too few to test the events"
     );
+    let crashes: u32 = episodes
+        .iter()
+        .map(|e| e.metrics.crashes + e.metrics.opponent_crashes)
+        .sum();
+    assert!(crashes > 0, "no crash: the crash events went untested");
 }
 
 #[test]
@@ -114,6 +119,7 @@ fn the_page_is_self_contained_and_no_name_can_close_its_data() {
         3,
         "data, three.js, viewer"
     );
+    assert!(page.contains("<title>a &lt;b>race&lt;/b> &amp; more</title>"));
     for external in ["<script src", "<link", "import(", "fetch("] {
         assert!(
             !page.contains(external),
@@ -147,4 +153,35 @@ fn a_trace_written_before_attitudes_and_events_still_reads() {
     let t = Trace::from_json(&old).unwrap();
     assert_eq!(t.steps(), 1);
     assert!(t.ego_attitude.is_empty() && t.events.is_empty() && t.lead_m.is_empty());
+}
+
+#[test]
+fn a_page_whose_states_do_not_match_its_step_count_is_refused() {
+    let (world, episodes) = fly(Some("baseline:7"), 1);
+    let page = page(&world, &["a".into(), "b".into()], &episodes);
+    let mut json = read(&page).unwrap();
+    let steps = json["episodes"][0]["steps"].as_u64().unwrap();
+    json["episodes"][0]["steps"] = (steps + 1).into();
+    assert!(
+        trace(&json, 0)
+            .unwrap_err()
+            .contains("values, not 8 for each of")
+    );
+    json["episodes"][0]["steps"] = steps.into();
+    json["episodes"][0]["ego"] = serde_json::Value::Null;
+    assert!(trace(&json, 0).unwrap_err().contains("no ego states"));
+    assert!(trace(&json, 1).unwrap_err().contains("no episode 1"));
+}
+
+#[test]
+fn pilots_are_named_by_their_files_and_the_baseline_by_itself() {
+    assert_eq!(
+        short_name("/a/b/stage1.blob (stage1)"),
+        "stage1.blob (stage1)"
+    );
+    assert_eq!(short_name("policies/x.blob"), "x.blob");
+    assert_eq!(
+        short_name("baseline (7.0 m/s cruise)"),
+        "baseline (7.0 m/s cruise)"
+    );
 }

@@ -11,8 +11,10 @@ cd "$here"
 npm ci --no-audit --no-fund --silent
 version="$(node -p "JSON.parse(require('fs').readFileSync('node_modules/three/package.json')).version")"
 {
-  printf '/* three.js %s (https://threejs.org), MIT License, Copyright 2010-2025 three.js authors.\n' "$version"
-  printf '   The exports of tools/replay/three-entry.js, bundled by tools/replay/build-three.sh. */\n'
+  printf '/* three.js %s (https://threejs.org): the exports of tools/replay/three-entry.js,\n' "$version"
+  printf '   bundled by tools/replay/build-three.sh. Its licence, as the package ships it:\n\n'
+  sed 's/^/   /' node_modules/three/LICENSE
+  printf '*/\n'
   npx esbuild three-entry.js --bundle --minify --format=iife --global-name=THREE \
     --target=es2020 --legal-comments=none --log-level=warning
 } > "$out.tmp"

@@ -6,10 +6,12 @@
    trace's positions, attitudes, speeds and leads to 1e-6 (they are the same f32 values),
    and the same events.
 3. Headless Chromium renders the page's probe view (#probe=1: the 3-D view alone, from
-   above) at a chosen moment. The pixels at the recorded positions must show what the page
-   should draw there: the ego's and the opponent's colours at the drones, the gates' at the
-   gate centres, the background where nothing flies. The top view's framing is recomputed
-   here from its documented rule (viewer.js FRAMING), not read from the page.
+   above) at a chosen moment. The pixels at the recorded poses must show what the page
+   should draw there: each drone's colour at its position, its white nose and its four
+   rotors where its recorded attitude puts them (viewer.js NOSE, ROTOR_M), the gates'
+   colour at each gate's centre and at both ends of its top bar (the gate's heading), the
+   background where nothing flies. The top view's framing is recomputed here from its
+   documented rule (viewer.js FRAMING), not read from the page.
 4. The default view (chase camera, panels, timeline) loads without a script error.
 
     python3 tools/replay/check.py --sitl target/release/sitl [--chromium /usr/bin/chromium]
@@ -34,7 +36,13 @@ COLORS = {  # viewer.js COLORS, as sRGB bytes
     "gate": (0xF2, 0xF2, 0xF2),
     "ego": (0xFF, 0x5A, 0x1F),
     "opponent": (0x2F, 0x8C, 0xFF),
+    "nose": (0xFF, 0xFF, 0xFF),
+    "rotor": (0x3A, 0x3F, 0x48),
 }
+NOSE_M = (0.12, 0.0, 0.03)  # viewer.js NOSE.at_m, body frame
+ROTOR_M = 0.177  # viewer.js ROTOR_M
+ROTOR_Z_M = 0.015
+GATE_BAR_M = 0.1  # viewer.js GATE_BAR_M
 TOLERANCE = 8  # per channel, for the renderer's colour-space round trip
 WIDTH, HEIGHT = 900, 700
 CHROMIUM_FLAGS = [
@@ -71,12 +79,14 @@ def check_round_trip(data, traces):
                 want = t[f"{key}_m"][k] + t[f"{key}_attitude"][k] + [t[f"{key}_speed_mps"][k]]
                 worst = max(worst, max(abs(a - b) for a, b in zip(row, want)))
         lead = f32s(e["lead_m"])
+        assert len(lead) == e["steps"] == len(t["lead_m"]), (i, "lead length")
         for a, b in zip(lead, t["lead_m"]):
-            assert (b is None and math.isnan(a)) or abs(a - b) <= 1e-6, (i, a, b)
+            assert (b is None and math.isnan(a)) or a == b, (i, a, b)
         for key in ("respawns", "overtakes", "events"):
             assert e[key] == t[key], (i, key)
-    assert worst <= 1e-6, f"the replay moves a recorded value by {worst}"
-    print(f"round trip: {len(traces['episodes'])} episodes, largest difference {worst:g} (<= 1e-6)")
+    # The trace's JSON writes each f32 in full, so the page must give back the same values.
+    assert worst == 0.0, f"the replay moves a recorded value by {worst}"
+    print(f"round trip: {len(traces['episodes'])} episodes, every value exact (to 1e-6 m asked)")
 
 
 def framing(gates, width, height):
@@ -115,14 +125,31 @@ def chromium(binary, url, out_dir, *extra):
     return r
 
 
-def pixel_near(img, x, y, color):
-    """Whether the 2 x 2 pixels whose centres are nearest (x, y) have `color` (within
-    TOLERANCE). A gate's top bar is 0.1 m wide (3.75 px here), a drone's body 0.16 m."""
+def rotate(q, v):
+    """v (body frame) in the world frame, q = (w, x, y, z) body to world."""
+    w, x, y, z = q
+    vx, vy, vz = v
+    # v + 2 w (u x v) + 2 u x (u x v), u = (x, y, z)
+    cx, cy, cz = y * vz - z * vy, z * vx - x * vz, x * vy - y * vx
+    return (vx + 2 * (w * cx + y * cz - z * cy),
+            vy + 2 * (w * cy + z * cx - x * cz),
+            vz + 2 * (w * cz + x * cy - y * cx))
+
+
+def add(p, v):
+    return tuple(a + b for a, b in zip(p, v))
+
+
+def pixel_near(img, x, y, color, block=2):
+    """Whether the block x block pixels whose centres are nearest (x, y) have `color`
+    (within TOLERANCE). block 2 for a drone's body (0.16 m: 6 px here); block 1 for thin
+    parts: a gate's top bar seen from above is 0.06 m (2.25 px), a rotor 0.17 m across,
+    the nose 0.07 m."""
     px = img.load()
-    x0, y0 = math.floor(x - 0.5), math.floor(y - 0.5)
+    x0, y0 = (math.floor(x - 0.5), math.floor(y - 0.5)) if block == 2 else (math.floor(x), math.floor(y))
     seen = []
-    for dy in (0, 1):
-        for dx in (0, 1):
+    for dy in range(block):
+        for dx in range(block):
             p = px[x0 + dx, y0 + dy][:3]
             seen.append(p)
             if any(abs(a - b) > TOLERANCE for a, b in zip(p, color)):
@@ -134,6 +161,8 @@ def check_pixels(args, page_path, data, out_dir):
     from PIL import Image
 
     k, ego, opp = pick_moment(data)
+    e0 = data["episodes"][0]
+    q = {key: f32s(e0[key])[STATE_FLOATS * k + 3:STATE_FLOATS * k + 7] for key in ("ego", "opponent")}
     t = repr((k + 1) * data["dt_s"])
     shot = os.path.join(out_dir, "probe.png")
     url = f"file://{os.path.abspath(page_path)}#probe=1&episode=0&t={t}"
@@ -144,12 +173,24 @@ def check_pixels(args, page_path, data, out_dir):
     assert img.size == (WIDTH, HEIGHT), img.size
     to_px, scale = framing(data["track"]["gates"], WIDTH, HEIGHT)
     failures = []
-    probes = [("ego", ego), ("opponent", opp)]
-    probes += [("gate", g["center_m"]) for g in data["track"]["gates"]]
-    for name, p in probes:
-        ok, seen = pixel_near(img, *to_px(p[0], p[1]), COLORS[name])
+    probes = []  # (what, colour, world point, block)
+    for key, p in (("ego", ego), ("opponent", opp)):
+        probes.append((key, key, p, 2))
+        probes.append((f"{key}'s nose", "nose", add(p, rotate(q[key], NOSE_M)), 1))
+        for sx in (1, -1):
+            for sy in (1, -1):
+                r = rotate(q[key], (sx * ROTOR_M, sy * ROTOR_M, ROTOR_Z_M))
+                probes.append((f"{key}'s rotor ({sx:+d}, {sy:+d})", "rotor", add(p, r), 1))
+    h = data["track"]["opening_half_size_m"]
+    for i, g in enumerate(data["track"]["gates"]):
+        probes.append((f"g{i} centre", "gate", g["center_m"], 1))
+        for side in (1, -1):  # the top bar's ends: the gate's heading
+            end = rotate(g["frame"], (0.0, side * (h + GATE_BAR_M / 2), 0.0))
+            probes.append((f"g{i} bar end {side:+d}", "gate", add(g["center_m"], end), 1))
+    for what, color, p, block in probes:
+        ok, seen = pixel_near(img, *to_px(p[0], p[1]), COLORS[color], block)
         if not ok:
-            failures.append(f"{name} at {p[:2]} -> pixel {to_px(p[0], p[1])}: saw {seen}")
+            failures.append(f"{what} at {[round(c, 3) for c in p[:2]]} -> pixel {to_px(p[0], p[1])}: saw {seen}")
     # Nothing is drawn above or below the figure-8's crossing, 1.5 m beyond the gates.
     ys = [g["center_m"][1] for g in data["track"]["gates"]]
     xs = [g["center_m"][0] for g in data["track"]["gates"]]
@@ -163,8 +204,9 @@ def check_pixels(args, page_path, data, out_dir):
         failures.append("the ego's colour at the opponent's position")
     if failures:
         sys.exit("the rendered replay does not show the recorded positions:\n" + "\n".join(failures))
-    print(f"pixels: step {k} (t = {float(t):.2f} s), {scale:.1f} px/m: ego, opponent and "
-          f"{len(data['track']['gates'])} gates drawn at their recorded positions, background clear")
+    print(f"pixels: step {k} (t = {float(t):.2f} s), {scale:.1f} px/m: {len(probes)} probes (both "
+          f"drones' bodies, noses and rotors by their recorded attitudes, "
+          f"{len(data['track']['gates'])} gates by centre and heading), background clear")
 
 
 def check_loads(args, page_path, out_dir):

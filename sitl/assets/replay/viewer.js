@@ -18,6 +18,10 @@
   const STATE_FLOATS = 8; // x, y, z, qw, qx, qy, qz, speed per step (replay.rs)
   const TRAIL_S = 1.5;
   const GATE_BAR_M = 0.1;
+  // Where the parts the CI's probes look for sit in the drone's body frame (x forward, y
+  // left, z up; m): the nose, and the rotors at (±ROTOR_M, ±ROTOR_M).
+  const NOSE = { at_m: [0.12, 0, 0.03], size_m: [0.1, 0.07, 0.03] };
+  const ROTOR_M = 0.177;
   // The top view's framing, which the CI's pixel probes compute independently: the bounding
   // box of the gate centres (x, y) grown by FRAMING.margin_m on every side, fitted into the
   // canvas at one scale (pixels per metre) for both axes, centred; x to the right, y up.
@@ -149,6 +153,11 @@
     bar(2 * h + 2 * b, b, 0, -h - b / 2);
     bar(b, 2 * h, h + b / 2, 0);
     bar(b, 2 * h, -h - b / 2, 0);
+    // A chevron on the exit side, level with the top bar: the direction of travel.
+    const chevron = new THREE.BufferGeometry();
+    const zc = h + b;
+    chevron.setAttribute('position', new THREE.Float32BufferAttribute([0.35, 0.3, zc, 0.65, 0, zc, 0.65, 0, zc, 0.35, -0.3, zc], 3));
+    group.add(new THREE.LineSegments(chevron, new THREE.LineBasicMaterial({ color: COLORS.gate })));
     group.position.copy(V(gate.center_m));
     if (!probe) {
       // Above the frame; gates that share a place (the figure-8's crossing) stack their labels.
@@ -179,11 +188,11 @@
     add(new THREE.BoxGeometry(0.5, 0.04, 0.02), arm, 10, (m) => { m.rotation.z = -Math.PI / 4; });
     for (const [sx, sy] of [[1, 1], [1, -1], [-1, 1], [-1, -1]]) {
       add(new THREE.CylinderGeometry(0.085, 0.085, 0.012, 20), mat(COLORS.rotor), 11, (m) => {
-        m.rotation.x = Math.PI / 2; m.position.set(sx * 0.177, sy * 0.177, 0.015);
+        m.rotation.x = Math.PI / 2; m.position.set(sx * ROTOR_M, sy * ROTOR_M, 0.015);
       });
     }
     add(new THREE.BoxGeometry(0.16, 0.16, 0.05), mat(color), 12, () => {});
-    add(new THREE.BoxGeometry(0.07, 0.04, 0.03), mat(COLORS.nose), 13, (m) => { m.position.set(0.11, 0, 0.03); });
+    add(new THREE.BoxGeometry(NOSE.size_m[0], NOSE.size_m[1], NOSE.size_m[2]), mat(COLORS.nose), 13, (m) => { m.position.set(...NOSE.at_m); });
     scene.add(group);
     return group;
   }
@@ -266,7 +275,9 @@
     }
     for (const o of e.overtakes) out.push({ t: o.step * dt, kind: o.sustained ? 'overtake-sustained' : 'overtake', drone: 0, text: o.sustained ? 'ego overtakes (held 2 s)' : 'ego overtakes (not held)' });
     for (const r of e.respawns) out.push({ t: r * dt, kind: 'restart', drone: -1, text: 'restart (both respawn)' });
-    return out.sort((a, b) => a.t - b.t || (a.kind === 'restart') - (b.kind === 'restart'));
+    // At equal times a restart sorts before the crash that caused it, so the overlay (the
+    // last recent event) names the crash.
+    return out.sort((a, b) => a.t - b.t || (b.kind === 'restart') - (a.kind === 'restart'));
   }
   let episodeEvents = [];
 
@@ -281,6 +292,7 @@
       const m = new THREE.Mesh(new THREE.BoxGeometry(0.18, 0.18, 0.18), new THREE.MeshBasicMaterial({ color: COLORS.crash }));
       m.position.set(s[k * 8], s[k * 8 + 1], s[k * 8 + 2]);
       m.rotation.set(0.6, 0.6, 0);
+      m.userData.t = ev.t;
       crashGroup.add(m);
     }
     buildSide();
@@ -368,7 +380,7 @@
     const e = ep();
     chart($('#speed-chart'), actors.map((a) => ({ color: COLORS[a.key], at: (k) => e.states[a.key][k * 8 + 7] })), false);
     if (e.lead) chart($('#lead-chart'), [{ color: COLORS.ego, at: (k) => e.lead[k] }], true);
-    for (const d of document.querySelectorAll('#events div')) d.classList.toggle('past', Number(d.dataset.t) > state.t);
+    for (const d of document.querySelectorAll('#events div')) d.classList.toggle('future', Number(d.dataset.t) > state.t);
   }
   // ---- the timeline: events over the episode, the cursor ------------------------------
   const timeCanvas = $('#time canvas');
@@ -409,6 +421,7 @@
     return { scale, cx: centre.x, cy: centre.y };
   }
   function place() {
+    for (const m of crashGroup.children) m.visible = m.userData.t <= state.t + 1e-9;
     const poses = {};
     for (const a of actors) {
       const ps = pose(a.key, state.t);
@@ -445,7 +458,9 @@
     perspective.aspect = w / Math.max(1, hgt);
     perspective.updateProjectionMatrix();
     if (state.view === 'chase') {
-      const e = ep(), s = e.states.ego, k = poses.ego.k, k0 = Math.max(0, k - 5);
+      const e = ep(), s = e.states.ego, k = poses.ego.k;
+      const restart = e.raw.respawns.filter((r) => r <= k).pop() || 0;
+      const k0 = Math.max(restart, k - 5);
       const d = new THREE.Vector3(s[k * 8] - s[k0 * 8], s[k * 8 + 1] - s[k0 * 8 + 1], 0);
       if (d.length() > 0.05) state.chaseDir.lerp(d.normalize(), 0.25).normalize();
       // Behind the ego; with the opponent near, behind the pair, backed off to hold both.
@@ -523,18 +538,19 @@
   });
 
   // ---- start: the URL's options ------------------------------------------------------
-  let start = { episode: Number(params.episode || 0), t: null };
+  const finite = (v, fallback) => (Number.isFinite(Number(v)) ? Number(v) : fallback);
+  let start = { episode: Math.trunc(finite(params.episode, 0)), t: null };
   if (params.t === 'overtake') {
     // The first sustained overtake (of the given episode, else of any), else the first one.
     const order = params.episode !== undefined ? [start.episode] : data.episodes.map((_, i) => i);
     const find = (held) => { for (const i of order) { const o = data.episodes[i].overtakes.find((m) => !held || m.sustained); if (o) return { episode: i, t: o.step * dt }; } return null; };
     start = find(true) || find(false) || { episode: start.episode, t: null };
-    if (start.t !== null) start.t += Number(params.offset || 0);
-  } else if (params.t !== undefined) start.t = Number(params.t);
+    if (start.t !== null) start.t += finite(params.offset, 0);
+  } else if (params.t !== undefined) start.t = finite(params.t, null);
   loadEpisode(start.episode);
   state.t = Math.max(dt, Math.min(duration(), start.t === null ? dt : start.t));
   setView(probe ? 'top' : (params.view || 'chase'));
-  state.speed = Number(params.speed || 1);
+  state.speed = [0.25, 0.5, 1, 2, 4].includes(Number(params.speed)) ? Number(params.speed) : 1;
   $('#speed').value = state.speed;
   state.playing = params.play === '1';
   requestAnimationFrame(frame);

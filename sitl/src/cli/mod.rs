@@ -166,10 +166,7 @@ impl Scoring {
         preset: &Preset,
         episodes: &[sitl::referee::Episode],
     ) -> Result<(), String> {
-        let short: Vec<&str> = pilots
-            .iter()
-            .map(|p| p.rsplit(['/', '\\']).next().unwrap_or(p))
-            .collect();
+        let short: Vec<String> = pilots.iter().map(|p| sitl::replay::short_name(p)).collect();
         let title = format!(
             "{} ({} preset, seed {})",
             short.join(" vs "),

@@ -193,7 +193,7 @@ fn announce(entrants: &[Entrant], transport: &Transport, config: &RaceConfig) {
     );
 }
 
-/// Writes what was asked for: the telemetry log, the traces, the plot, the JSON.
+/// Writes what was asked for: the telemetry log, the traces, the plot, the JSON, the replay.
 fn write_outputs(
     args: &RaceArgs,
     entrants: &[Entrant],
@@ -211,16 +211,6 @@ fn write_outputs(
     }
     let pilots: Vec<String> = entrants.iter().map(|e| e.pilot.describe()).collect();
     scoring.write_traces(&pilots, preset, &outcome.episodes)?;
-    if !args.no_replay {
-        let world = config.eval.world(entrants.len() == 2);
-        scoring.write_replay(
-            &args.replay,
-            &world.track,
-            &pilots,
-            preset,
-            &outcome.episodes,
-        )?;
-    }
     if let (false, Some(first)) = (args.no_plot, outcome.episodes.first()) {
         let title = format!(
             "{} over MAVLink, episode 0 ({} preset, seed {})",
@@ -237,6 +227,17 @@ fn write_outputs(
     }
     if let Some(path) = &scoring.json {
         write(path, outcome.to_json().as_bytes())?;
+    }
+    // Last: the largest file, and one whose failure cannot keep the others from being written.
+    if !args.no_replay {
+        let world = config.eval.world(entrants.len() == 2);
+        scoring.write_replay(
+            &args.replay,
+            &world.track,
+            &pilots,
+            preset,
+            &outcome.episodes,
+        )?;
     }
     Ok(())
 }
