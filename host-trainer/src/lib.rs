@@ -14,7 +14,7 @@
 //! | [`nets`] | the traits PPO needs of a network |
 //! | [`model`] | the feed-forward actor and critic (rows A-D) on `burn` |
 //! | [`recurrent`] | the LSTM actor and critic (rows E-G) with a fused cell |
-//! | [`fused`] | the feed-forward PPO minibatch step by hand: forward, loss, backward, clip, Adam |
+//! | [`fused`] | the PPO minibatch step by hand, feed-forward and recurrent: forward, loss, backward, clip, Adam |
 //! | [`update`] | what one PPO update reports, and the KL-adaptive learning rate both updates share |
 //! | [`grads`] | gradient norms, clipping and moving gradients between network copies |
 //! | [`guard`] | the optional line search of each update on the measured return |
@@ -25,6 +25,7 @@
 //! | [`memory`] | a run's memory estimated from its config and checked before allocation |
 //! | [`metrics`] | `metrics.jsonl` lines, learning curves, the terminal |
 //! | [`run_dir`] | the output directory: checkpoints (atomic), resume, metrics files |
+//! | [`latest`] | a run's latest checkpoint as a learner, an actor or a blob, outside the loop |
 //! | [`export`] | the only blob-header builder; actor to blob and safetensors, blob to actor |
 //! | [`rslrl`] | interchange with RSL-RL, the paper's own stack |
 //! | [`rng`] | the run's seeded random streams |
@@ -40,6 +41,7 @@ pub mod fused;
 pub mod grads;
 pub mod guard;
 pub mod imitation;
+pub mod latest;
 pub mod memory;
 pub mod metrics;
 pub mod model;

@@ -316,7 +316,7 @@ fn export(config: &Path, out: &Path, blob: &Path, dtype: WeightDtype) -> Result<
     let cfg = TrainConfig::load(config).map_err(|e| format!("{}: {e}", config.display()))?;
     let device = burn::tensor::Device::flex().autodiff();
     let (iteration, bytes) =
-        host_trainer::run_dir::checkpoint_blob(&cfg, out, &device).map_err(|e| e.to_string())?;
+        host_trainer::latest::checkpoint_blob(&cfg, out, &device).map_err(|e| e.to_string())?;
     let bytes = match dtype {
         WeightDtype::F32 => bytes,
         WeightDtype::I8 => convert_bytes(&bytes, dtype).map_err(|e| e.to_string())?,

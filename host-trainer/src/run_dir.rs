@@ -37,13 +37,11 @@
 
 use crate::config::TrainConfig;
 use crate::error::{TrainError, io};
-use crate::export::actor_blob;
 use crate::fused::FusedOptim;
 use crate::metrics::{IterationMetrics, learning_curves};
 use crate::model::{Actor, Critic};
 use crate::nets::{PolicyNet, ValueNet};
 use crate::ppo::{Learner, adam};
-use crate::recurrent::{RecurrentActor, RecurrentCritic};
 use crate::rng::{init_rng, restore_rng, rng_state};
 use burn::tensor::Device;
 use firmware_core::policy::Architecture;
@@ -665,57 +663,6 @@ fn all_finite<M: burn::module::Module>(module: &M) -> bool {
 /// One line of `metrics.jsonl`.
 fn metrics_line(m: &IterationMetrics) -> Result<String, TrainError> {
     serde_json::to_string(m).map_err(|e| TrainError::Export(format!("metrics.jsonl: {e}")))
-}
-
-/// The learner (actor, critic, Adam states, learning rate) of the latest checkpoint in `out`
-/// and its iteration (for diagnostics on a run's networks).
-pub fn checkpoint_learner(
-    config: &TrainConfig,
-    out: &Path,
-    device: &Device,
-) -> Result<(u32, Learner), TrainError> {
-    let arch = config.architecture()?;
-    let state = RunDir::new(out).load_checkpoint::<Actor, Critic>(config, &arch, device)?;
-    Ok((state.iteration, state.learner))
-}
-
-/// The actor of the latest checkpoint in `out` as a blob with the run's provenance (for
-/// exporting a run that has not finished), feed-forward or recurrent, and its iteration.
-pub fn checkpoint_blob(
-    config: &TrainConfig,
-    out: &Path,
-    device: &Device,
-) -> Result<(u32, Vec<u8>), TrainError> {
-    fn latest<A: PolicyNet, C: ValueNet>(
-        dir: &RunDir,
-        config: &TrainConfig,
-        arch: &Architecture,
-        device: &Device,
-    ) -> Result<(u32, Vec<u8>), TrainError> {
-        let s = dir.load_checkpoint::<A, C>(config, arch, device)?;
-        Ok((
-            s.iteration,
-            actor_blob(&s.learner.actor, config, s.iteration)?,
-        ))
-    }
-    let arch = config.architecture()?;
-    let dir = RunDir::new(out);
-    if arch.is_recurrent() {
-        latest::<RecurrentActor, RecurrentCritic>(&dir, config, &arch, device)
-    } else {
-        latest::<Actor, Critic>(&dir, config, &arch, device)
-    }
-}
-
-/// The feed-forward actor of the latest checkpoint in `out` (for checking a resume).
-pub fn checkpoint_actor(
-    config: &TrainConfig,
-    out: &Path,
-    device: &Device,
-) -> Result<(u32, Actor), TrainError> {
-    let arch = config.architecture()?;
-    let state = RunDir::new(out).load_checkpoint::<Actor, Critic>(config, &arch, device)?;
-    Ok((state.iteration, state.learner.actor))
 }
 
 #[cfg(test)]

@@ -7,9 +7,9 @@
 use burn::tensor::Device;
 use host_trainer::config::{Selection, TrainConfig};
 use host_trainer::fused::FusedOptim;
+use host_trainer::latest::{checkpoint_actor, checkpoint_blob};
 use host_trainer::metrics::IterationMetrics;
 use host_trainer::nets::PolicyNet;
-use host_trainer::run_dir::{checkpoint_actor, checkpoint_blob};
 use host_trainer::train::{RunOptions, run};
 use std::path::{Path, PathBuf};
 

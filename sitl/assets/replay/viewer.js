@@ -6,8 +6,9 @@
 // sustained overtake, else the first overtake; offset=SECONDS moves it), view=chase|orbit|top,
 // speed=X, play=1,
 // probe=1 (the 3-D view alone, from above, for pixel checks: see FRAMING below).
-(function () {
-  'use strict';
+'use strict';
+// One block, not a function: its names stay out of the page's global scope.
+{
 
   const COLORS = {
     background: '#14171c', grid: '#262b33', centerline: '#5a6472', gate: '#f2f2f2',
@@ -554,4 +555,4 @@
   $('#speed').value = state.speed;
   state.playing = params.play === '1';
   requestAnimationFrame(frame);
-})();
+}
