@@ -105,7 +105,7 @@ fn dequantised_weights_are_within_half_a_step_of_the_originals() {
 
 #[test]
 fn the_int8_grid_is_what_an_int8_blob_holds_and_stays_put() {
-    // Quantisation-aware training runs its forward pass on `int8_grid` and ends on it: the
+    // A quantisation-aware trainer runs its forward pass on `int8_grid` and ends on it: the
     // int8 blob of grid weights must dequantise to exactly those weights (or the deployed
     // policy is not the trained one), and the grid of grid weights must be themselves.
     for row in [TableRow::A, TableRow::C, TableRow::G] {

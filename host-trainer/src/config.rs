@@ -161,12 +161,6 @@ pub struct WarmStart {
     pub student_noise_std: f32,
     /// PPO iterations after the warm start that train the critic only.
     pub critic_iterations: u32,
-    /// Quantisation-aware rounds: the student flies and is fitted with its weights on the
-    /// int8 grid of an int8 blob (`firmware_core::blob::int8_grid`; the gradient passes
-    /// straight through the rounding to the f32 weights), and the stage ends with the
-    /// weights on that grid, so the f32 and int8 blobs of the student are the same policy.
-    #[serde(default, skip_serializing_if = "is_false")]
-    pub quantization_aware: bool,
     /// Referee every round's student (`run.eval_races` races on `run.eval_seed`, logged in
     /// `imitation.jsonl`, its blob kept as `checkpoints/warm_start_round_NNN.blob`) and end
     /// the warm start with the best-scored one (as `run.keep_best` ranks them) instead of the
@@ -204,9 +198,6 @@ pub struct Refine {
     /// The rate in its last round (geometric in between); absent: constant.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub learning_rate_final: Option<f64>,
-    /// Quantisation-aware rounds (as `warm_start.quantization_aware`).
-    #[serde(default, skip_serializing_if = "is_false")]
-    pub quantization_aware: bool,
 }
 
 /// Name, seed, budget and bookkeeping of a run.
@@ -498,7 +489,6 @@ impl WarmStart {
                 max_samples: r.max_samples,
                 learning_rate: r.learning_rate,
                 learning_rate_final: r.learning_rate_final,
-                quantization_aware: r.quantization_aware,
                 teacher_share_start: 0.0,
                 student: None,
                 transplant: false,

@@ -243,7 +243,6 @@ fn teacher_warm_start() -> host_trainer::config::WarmStart {
         teacher_share_start: 1.0,
         student_noise_std: 0.1,
         critic_iterations: 0,
-        quantization_aware: false,
         keep_best_round: false,
         clamp_labels: false,
         refine: Vec::new(),
@@ -284,63 +283,6 @@ fn a_recurrent_student_learns_from_the_stage1_teacher() {
     let actor = RecurrentActor::fresh(&arch, 0.2, &mut host_trainer::rng::init_rng(2), &device);
     let e = imitate_recurrent(actor, &arch, &c, &bad, &device, &mut |_, _| {}).unwrap_err();
     assert!(e.to_string().contains("/nonexistent.blob"), "{e}");
-}
-
-/// A quantisation-aware stage flies and fits the student on its int8 grid and ends on it:
-/// the student's int8 blob holds exactly its f32 weights (so `sitl int8-check` can only find
-/// the activations' int16 rounding), for the recurrent and the feed-forward students alike.
-#[test]
-fn a_quantization_aware_stage_ends_with_the_student_on_its_int8_grid() {
-    use firmware_core::blob::{encode_i8, int8_grid};
-    use firmware_core::policy::{Architecture, TableRow};
-    use host_trainer::config::WarmStart;
-    use host_trainer::imitation::Imitate;
-    use host_trainer::model::Actor;
-    use host_trainer::nets::PolicyNet;
-    use host_trainer::recurrent::RecurrentActor;
-    use host_trainer::rng::init_rng;
-
-    fn check<A: Imitate>(row: TableRow, fresh: impl Fn(&Architecture, &Device) -> A) {
-        let mut c = config();
-        c.run.row = row.letter();
-        c.env.num_envs = 16;
-        c.ppo.steps_per_env = 20;
-        let warm = WarmStart {
-            rounds: 2,
-            steps_per_env: 40,
-            quantization_aware: true,
-            ..teacher_warm_start()
-        };
-        let arch = Architecture::table1(row);
-        let device = Device::flex().autodiff();
-        let actor = fresh(&arch, &device);
-        let before = actor.payload();
-        let (student, rounds) = actor
-            .imitate(&arch, &c, &warm, &device, &mut |_, _| {})
-            .unwrap();
-        let weights = student.payload();
-        assert_ne!(weights, before, "row {}: the stage trained", row.letter());
-        assert!(
-            rounds.iter().all(|r| r.mse.is_finite() && r.mse > 0.0),
-            "{rounds:?}"
-        );
-        assert_eq!(
-            int8_grid(&arch, &weights).unwrap(),
-            weights,
-            "row {}: the student ends on its int8 grid",
-            row.letter()
-        );
-        let header = firmware_core::synthetic::header(row, 1);
-        let bytes = AlignedBytes::new(&encode_i8(&header, &weights).unwrap());
-        let blob = Blob::parse(bytes.as_bytes()).unwrap();
-        assert_eq!(blob.dequantized(), weights, "row {}", row.letter());
-    }
-    check(TableRow::G, |arch, device| {
-        RecurrentActor::fresh(arch, 0.2, &mut init_rng(3), device)
-    });
-    check(TableRow::C, |arch, device| {
-        Actor::fresh(arch, 0.2, &mut init_rng(3), device)
-    });
 }
 
 /// `warm_start.keep_best_round`: every round's student is refereed (the scores in

@@ -164,7 +164,6 @@ impl Default for WarmStart {
             teacher_share_start: one(),
             student_noise_std: 0.1,
             critic_iterations: 30,
-            quantization_aware: false,
             keep_best_round: false,
             clamp_labels: false,
             refine: Vec::new(),

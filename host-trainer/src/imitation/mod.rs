@@ -16,7 +16,6 @@ mod recurrent;
 
 use crate::config::{TrainConfig, WarmStart};
 use crate::error::TrainError;
-use crate::grads::transfer_gradients;
 use crate::model::{Actor, values};
 use crate::nets::PolicyNet;
 use crate::ppo::adam;
@@ -107,20 +106,6 @@ fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
 
-/// The weights a stage flies and fits the student with: its own, or under
-/// `quantization_aware` their int8 grid (what its int8 blob would hold).
-fn forward_payload(
-    payload: Vec<f32>,
-    arch: &Architecture,
-    warm: &WarmStart,
-) -> Result<Vec<f32>, TrainError> {
-    if !warm.quantization_aware {
-        return Ok(payload);
-    }
-    firmware_core::blob::int8_grid(arch, &payload)
-        .map_err(|e| TrainError::Export(format!("quantisation-aware imitation: {e}")))
-}
-
 /// A copy of `actor` (σ kept) holding `payload`, with parameters of its own.
 fn actor_holding<A: PolicyNet>(
     actor: &A,
@@ -130,54 +115,6 @@ fn actor_holding<A: PolicyNet>(
 ) -> Result<A, TrainError> {
     A::from_payload(arch, payload, &actor.std(), device)
         .ok_or_else(|| TrainError::Export("imitation: the actor's copy does not load".into()))
-}
-
-/// The forward network of one regression step: the actor itself, or under
-/// `quantization_aware` a copy on its int8 grid, whose gradients [`to_latent`] moves onto
-/// the actor (the straight-through estimator: the rounding's gradient taken as 1).
-fn forward_actor<A: PolicyNet>(
-    actor: &A,
-    arch: &Architecture,
-    warm: &WarmStart,
-    device: &Device,
-) -> Result<A, TrainError> {
-    if !warm.quantization_aware {
-        return Ok(actor.clone());
-    }
-    actor_holding(
-        actor,
-        arch,
-        &forward_payload(actor.payload(), arch, warm)?,
-        device,
-    )
-}
-
-/// The gradients of `forward` (from [`forward_actor`]) as the actor's.
-fn to_latent<A: PolicyNet>(
-    forward: &A,
-    grads: GradientsParams,
-    actor: &A,
-    warm: &WarmStart,
-) -> GradientsParams {
-    if warm.quantization_aware {
-        transfer_gradients(forward, grads, actor)
-    } else {
-        grads
-    }
-}
-
-/// The student a stage ends with: under `quantization_aware` the actor moved onto its int8
-/// grid, so that its f32 and int8 blobs hold the same policy.
-fn end_of_stage<A: PolicyNet>(
-    actor: A,
-    arch: &Architecture,
-    warm: &WarmStart,
-    device: &Device,
-) -> Result<A, TrainError> {
-    if !warm.quantization_aware {
-        return Ok(actor);
-    }
-    forward_actor(&actor, arch, warm, device)
 }
 
 /// The teacher, the environment and the generator of a warm start (its own seeds).
@@ -344,15 +281,14 @@ fn round_line(
     }
 }
 
-/// The student a round flies: its weights (on the int8 grid under `quantization_aware`)
-/// viewed by firmware-core.
+/// The student a round flies: its weights viewed by firmware-core.
 fn flying_policy<'w>(payload: &'w [f32], arch: &Architecture) -> Result<Policy<'w>, TrainError> {
     Policy::from_payload(arch, payload).map_err(|e| TrainError::Export(format!("imitation: {e}")))
 }
 
-/// The one DAgger loop of both warm starts: every round the student (as it flies: on the
-/// int8 grid under `quantization_aware`) and the teacher fly a round on the config's
-/// environment (a recurrent student from fresh spawns, so its state starts at zero), the
+/// The one DAgger loop of both warm starts: every round the student and the teacher fly a
+/// round on the config's environment (a recurrent student from fresh spawns, so its state
+/// starts at zero), the
 /// teacher labels the states, the data is kept by `fit`, and `warm.epochs` passes of `fit`
 /// regress the student's mean onto the labels. Returns the student (σ unchanged) with the
 /// rounds' statistics; `log` receives one line per round with the round's student.
@@ -362,13 +298,12 @@ fn dagger<A: PolicyNet>(
     arch: &Architecture,
     config: &TrainConfig,
     warm: &WarmStart,
-    device: &Device,
     log: &mut dyn FnMut(&ImitationRound, &[f32]),
 ) -> Result<(A, Vec<ImitationRound>), TrainError> {
     let (teacher, mut env, mut rng) = set_up(config, warm)?;
     let mut rounds = Vec::new();
     for round in 0..warm.rounds {
-        let payload = forward_payload(actor.payload(), arch, warm)?;
+        let payload = actor.payload();
         let policy = flying_policy(&payload, arch)?;
         if A::RECURRENT {
             env.respawn_all();
@@ -394,10 +329,10 @@ fn dagger<A: PolicyNet>(
             &stats,
             env.dt_s(),
         );
-        log(&r, &forward_payload(actor.payload(), arch, warm)?);
+        log(&r, &actor.payload());
         rounds.push(r);
     }
-    Ok((end_of_stage(actor, arch, warm, device)?, rounds))
+    Ok((actor, rounds))
 }
 
 /// What a kind of student brings to [`dagger`]: how the flown rounds are kept and how one
@@ -423,7 +358,6 @@ pub fn imitate(
     log: &mut dyn FnMut(&ImitationRound, &[f32]),
 ) -> Result<(Actor, Vec<ImitationRound>), TrainError> {
     let mut fit = FeedForwardFit {
-        arch,
         warm,
         device,
         obs_dim: config.observation_spec().dim(),
@@ -432,12 +366,11 @@ pub fn imitate(
         labels: Vec::new(),
         order: Vec::new(),
     };
-    dagger(actor, &mut fit, arch, config, warm, device, log)
+    dagger(actor, &mut fit, arch, config, warm, log)
 }
 
 /// The feed-forward regression of one warm-start stage and the samples it keeps.
 struct FeedForwardFit<'a> {
-    arch: &'a Architecture,
     warm: &'a WarmStart,
     device: &'a Device,
     obs_dim: usize,
@@ -479,12 +412,10 @@ impl Regression<Actor> for FeedForwardFit<'_> {
             }
             let obs_t = Tensor::<2>::from_data(TensorData::new(o, [idx.len(), obs_dim]), device);
             let act_t = Tensor::<2>::from_data(TensorData::new(a, [idx.len(), ACTION_DIM]), device);
-            let forward = forward_actor(&actor, self.arch, warm, device)?;
-            let loss = (forward.mean(obs_t) - act_t).square().mean();
+            let loss = (actor.mean(obs_t) - act_t).square().mean();
             sum += f64::from(values(loss.clone().inner()).first().copied().unwrap_or(0.0));
             batches += 1.0;
-            let grads = GradientsParams::from_grads(loss.backward(), &forward);
-            let grads = to_latent(&forward, grads, &actor, warm);
+            let grads = GradientsParams::from_grads(loss.backward(), &actor);
             actor = self
                 .optim
                 .step(warm.round_learning_rate(round), actor, grads);
@@ -517,7 +448,7 @@ pub fn imitate_recurrent(
         optim: adam(),
         data: Vec::new(),
     };
-    dagger(actor, &mut fit, arch, config, warm, device, log)
+    dagger(actor, &mut fit, arch, config, warm, log)
 }
 
 #[cfg(test)]

@@ -2,7 +2,7 @@
 //! `ppo.steps_per_env` steps with backpropagation through each window, from states the
 //! current student recomputes at every epoch.
 
-use super::{Regression, Round, actor_holding, forward_actor, to_latent};
+use super::{Regression, Round, actor_holding};
 use crate::config::WarmStart;
 use crate::error::TrainError;
 use crate::grads::{transfer_gradients, weighted_sum};
@@ -99,9 +99,7 @@ impl RecurrentFit<'_> {
         let valid = self.device.clone().without_autodiff();
         let mut batches = Vec::new();
         let mut starts: Vec<Vec<f32>> = Vec::new();
-        let start_net = forward_actor(actor, self.arch, self.warm, self.device)?
-            .net
-            .valid();
+        let start_net = actor.net.valid();
         for (ri, r) in data.iter().enumerate() {
             let steps = r.labels.len() / (n * ACTION_DIM);
             let net = start_net.clone();
@@ -185,8 +183,7 @@ impl RecurrentFit<'_> {
     /// minibatch is the size-weighted mean of the halves' means, and so is its gradient. The
     /// second half runs on a copy of the actor with parameters of its own (burn's autodiff
     /// cannot run two backward passes through shared parameters at once); its gradients are
-    /// moved onto the actor's. Under `quantization_aware` both halves run on copies on the
-    /// int8 grid.
+    /// moved onto the actor's.
     fn step(
         &mut self,
         actor: RecurrentActor,
@@ -197,26 +194,24 @@ impl RecurrentFit<'_> {
     ) -> Result<(RecurrentActor, f64), TrainError> {
         let (arch, warm, device) = (self.arch, self.warm, self.device);
         let (left, right) = w.envs.split_at(w.envs.len() / 2);
-        let forward = forward_actor(&actor, arch, warm, device)?;
         let (grads, value) = if left.is_empty() {
-            self.pass(&forward, r, w, right, start)
+            self.pass(&actor, r, w, right, start)
         } else {
-            let twin = actor_holding(&actor, arch, &forward.net.payload(), device)?;
+            let twin = actor_holding(&actor, arch, &actor.net.payload(), device)?;
             let this = &*self;
             let ((gl, vl), (gr, vr)) = std::thread::scope(|sc| {
                 let job = sc.spawn(|| this.pass(&twin, r, w, left, start));
-                let right = this.pass(&forward, r, w, right, start);
+                let right = this.pass(&actor, r, w, right, start);
                 (
                     job.join().unwrap_or_else(|e| std::panic::resume_unwind(e)),
                     right,
                 )
             });
-            let gl = transfer_gradients(&twin, gl, &forward);
+            let gl = transfer_gradients(&twin, gl, &actor);
             let wl = left.len() as f32 / w.envs.len() as f32;
-            let grads = weighted_sum(&forward, gl, wl, gr, 1.0 - wl);
+            let grads = weighted_sum(&actor, gl, wl, gr, 1.0 - wl);
             (grads, f64::from(wl) * vl + f64::from(1.0 - wl) * vr)
         };
-        let grads = to_latent(&forward, grads, &actor, warm);
         let actor = self
             .optim
             .step(warm.round_learning_rate(round), actor, grads);
