@@ -60,7 +60,5 @@ pub fn checkpoint_actor(
     out: &Path,
     device: &Device,
 ) -> Result<(u32, Actor), TrainError> {
-    let arch = config.architecture()?;
-    let state = RunDir::new(out).load_checkpoint::<Actor, Critic>(config, &arch, device)?;
-    Ok((state.iteration, state.learner.actor))
+    checkpoint_learner(config, out, device).map(|(iteration, learner)| (iteration, learner.actor))
 }

@@ -19,7 +19,7 @@
 //! ([`read`] and [`decode_f32`] read them back). docs/DESIGN.md "Replay" says why HTML and
 //! three.js rather than Rerun.
 
-use crate::referee::{Episode, Trace};
+use crate::referee::{Episode, OvertakeMark, Trace, TraceEvent};
 use base64::Engine as _;
 use base64::engine::general_purpose::STANDARD as BASE64;
 use firmware_core::math::Vec3;
@@ -123,11 +123,8 @@ fn episode_json(e: &Episode) -> serde_json::Value {
             &t.lead_m.iter().map(|l| l.unwrap_or(f32::NAN)).collect::<Vec<_>>(),
         )),
         "respawns": t.respawns,
-        "overtakes": t.overtakes.iter().map(|m| serde_json::json!({
-            "step": m.step,
-            "sustained": m.sustained,
-        })).collect::<Vec<_>>(),
-        "events": t.events.iter().map(crate::referee::TraceEvent::to_json).collect::<Vec<_>>(),
+        "overtakes": t.overtakes.iter().map(OvertakeMark::to_json).collect::<Vec<_>>(),
+        "events": t.events.iter().map(TraceEvent::to_json).collect::<Vec<_>>(),
         "metrics": {
             "sim_seconds": m.sim_seconds,
             "lap_times_s": m.lap_times_s,
@@ -288,18 +285,25 @@ pub fn trace(json: &serde_json::Value, index: usize) -> Result<Trace, String> {
     let dt_s = json["dt_s"]
         .as_f64()
         .ok_or("the replay has no control period (dt_s)")?;
-    let mut events = serde_json::json!({
-        "dt_s": dt_s,
-        "ego_m": [],
-        "opponent_m": [],
-        "respawns": e["respawns"],
-        "overtakes": e["overtakes"],
-        "events": e["events"],
-    });
-    let rest = Trace::from_json(&events.take()).ok_or_else(|| {
-        format!("episode {index}: its respawns, overtakes or events do not parse")
-    })?;
+    let unparsed = |key: &str| format!("episode {index}: its {key} do not parse");
+    let list = |key: &str| e[key].as_array().ok_or_else(|| unparsed(key));
+    let respawns = list("respawns")?
+        .iter()
+        .map(|s| s.as_u64().and_then(|s| u32::try_from(s).ok()))
+        .collect::<Option<Vec<_>>>()
+        .ok_or_else(|| unparsed("respawns"))?;
+    let overtakes = list("overtakes")?
+        .iter()
+        .map(OvertakeMark::from_json)
+        .collect::<Option<Vec<_>>>()
+        .ok_or_else(|| unparsed("overtakes"))?;
+    let events = list("events")?
+        .iter()
+        .map(TraceEvent::from_json)
+        .collect::<Option<Vec<_>>>()
+        .ok_or_else(|| unparsed("events"))?;
     Ok(Trace {
+        dt_s: dt_s as f32,
         ego_m,
         opponent_m,
         ego_attitude,
@@ -307,6 +311,8 @@ pub fn trace(json: &serde_json::Value, index: usize) -> Result<Trace, String> {
         ego_speed_mps,
         opponent_speed_mps,
         lead_m,
-        ..rest
+        events,
+        respawns,
+        overtakes,
     })
 }

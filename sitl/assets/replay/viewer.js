@@ -17,6 +17,8 @@
   };
   const DRONES = [{ key: 'ego', name: 'ego' }, { key: 'opponent', name: 'opponent' }];
   const STATE_FLOATS = 8; // x, y, z, qw, qx, qy, qz, speed per step (replay.rs)
+  // Value j of step k of one drone's states.
+  const stateAt = (s, k, j) => s[k * STATE_FLOATS + j];
   const TRAIL_S = 1.5;
   const GATE_BAR_M = 0.1;
   // Where the parts the CI's probes look for sit in the drone's body frame (x forward, y
@@ -244,7 +246,7 @@
     const k = Math.min(e.steps - 1, Math.max(0, Math.floor(x + 1e-6)));
     const k1 = Math.min(e.steps - 1, k + 1);
     const f = (k1 === k || e.respawnSet.has(k + 1)) ? 0 : Math.min(1, Math.max(0, x - k));
-    const at = (i, j) => s[i * STATE_FLOATS + j];
+    const at = (i, j) => stateAt(s, i, j);
     const p = new THREE.Vector3(at(k, 0), at(k, 1), at(k, 2));
     const q = new THREE.Quaternion(at(k, 4), at(k, 5), at(k, 6), at(k, 3));
     if (f > 0) {
@@ -258,7 +260,7 @@
     const e = ep(), s = e.states[key], out = [];
     for (let k = Math.max(0, a); k < Math.min(b, e.steps - 1); k++) {
       if (e.respawnSet.has(k + 1)) continue;
-      out.push(s[k * 8], s[k * 8 + 1], s[k * 8 + 2], s[k * 8 + 8], s[k * 8 + 9], s[k * 8 + 10]);
+      for (const i of [k, k + 1]) out.push(stateAt(s, i, 0), stateAt(s, i, 1), stateAt(s, i, 2));
     }
     return out;
   }
@@ -291,7 +293,7 @@
     for (const ev of episodeEvents.filter((x) => x.kind === 'crash')) {
       const k = stepAt(ev.t), s = ep().states[DRONES[ev.drone].key];
       const m = new THREE.Mesh(new THREE.BoxGeometry(0.18, 0.18, 0.18), new THREE.MeshBasicMaterial({ color: COLORS.crash }));
-      m.position.set(s[k * 8], s[k * 8 + 1], s[k * 8 + 2]);
+      m.position.set(stateAt(s, k, 0), stateAt(s, k, 1), stateAt(s, k, 2));
       m.rotation.set(0.6, 0.6, 0);
       m.userData.t = ev.t;
       crashGroup.add(m);
@@ -379,7 +381,7 @@
   }
   function drawCharts() {
     const e = ep();
-    chart($('#speed-chart'), actors.map((a) => ({ color: COLORS[a.key], at: (k) => e.states[a.key][k * 8 + 7] })), false);
+    chart($('#speed-chart'), actors.map((a) => ({ color: COLORS[a.key], at: (k) => stateAt(e.states[a.key], k, 7) })), false);
     if (e.lead) chart($('#lead-chart'), [{ color: COLORS.ego, at: (k) => e.lead[k] }], true);
     for (const d of document.querySelectorAll('#events div')) d.classList.toggle('future', Number(d.dataset.t) > state.t);
   }
@@ -462,7 +464,7 @@
       const e = ep(), s = e.states.ego, k = poses.ego.k;
       const restart = e.raw.respawns.filter((r) => r <= k).pop() || 0;
       const k0 = Math.max(restart, k - 5);
-      const d = new THREE.Vector3(s[k * 8] - s[k0 * 8], s[k * 8 + 1] - s[k0 * 8 + 1], 0);
+      const d = new THREE.Vector3(stateAt(s, k, 0) - stateAt(s, k0, 0), stateAt(s, k, 1) - stateAt(s, k0, 1), 0);
       if (d.length() > 0.05) state.chaseDir.lerp(d.normalize(), 0.25).normalize();
       // Behind the ego; with the opponent near, behind the pair, backed off to hold both.
       const target = poses.ego.p.clone();

@@ -153,9 +153,7 @@ impl Scoring {
         });
         write(path, json.to_string().as_bytes())
     }
-}
 
-impl Scoring {
     /// Writes the recorded episodes to `path` as a 3-D replay ([`sitl::replay`]), the
     /// pilots named by their files' names.
     pub fn write_replay(

@@ -90,10 +90,7 @@ impl Trace {
             "opponent_speed_mps": self.opponent_speed_mps,
             "lead_m": self.lead_m,
             "respawns": self.respawns,
-            "overtakes": self.overtakes.iter().map(|m| serde_json::json!({
-                "step": m.step,
-                "sustained": m.sustained,
-            })).collect::<Vec<_>>(),
+            "overtakes": self.overtakes.iter().map(OvertakeMark::to_json).collect::<Vec<_>>(),
             "events": self.events.iter().map(TraceEvent::to_json).collect::<Vec<_>>(),
         })
     }
@@ -124,12 +121,7 @@ impl Trace {
             .get("overtakes")?
             .as_array()?
             .iter()
-            .map(|m| {
-                Some(OvertakeMark {
-                    step: u32::try_from(m.get("step")?.as_u64()?).ok()?,
-                    sustained: m.get("sustained")?.as_bool()?,
-                })
-            })
+            .map(OvertakeMark::from_json)
             .collect::<Option<Vec<_>>>()?;
         let optional = |key: &str| v.get(key).unwrap_or(&serde_json::Value::Null);
         let quats = |key: &str| -> Option<Vec<Quat>> {
@@ -251,4 +243,19 @@ pub struct OvertakeMark {
     pub step: u32,
     /// The ego then kept the lead for [`SUSTAINED_LEAD_S`](super::SUSTAINED_LEAD_S) without a crash.
     pub sustained: bool,
+}
+
+impl OvertakeMark {
+    /// `{step, sustained}`.
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::json!({"step": self.step, "sustained": self.sustained})
+    }
+
+    /// A mark from [`OvertakeMark::to_json`]'s form.
+    pub fn from_json(v: &serde_json::Value) -> Option<Self> {
+        Some(Self {
+            step: u32::try_from(v.get("step")?.as_u64()?).ok()?,
+            sustained: v.get("sustained")?.as_bool()?,
+        })
+    }
 }
