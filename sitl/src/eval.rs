@@ -168,6 +168,49 @@ pub struct Report {
     /// 95% interval of `win_rate`; `None` for fewer than two episodes.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub win_rate_ci95: Option<[f64; 2]>,
+    /// Races: where the overtakes happened, by the gate the ego flew towards when it took
+    /// the lead, gates without an overtake left out (absent without an overtake).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub overtakes_by_gate: Vec<GateOvertakes>,
+}
+
+/// The overtakes taken while the ego flew towards one gate, all episodes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct GateOvertakes {
+    /// The gate's index on the track.
+    pub gate: usize,
+    /// Overtakes.
+    pub overtakes: u64,
+    /// Of them, sustained for 2 s.
+    pub sustained: u64,
+}
+
+impl GateOvertakes {
+    /// The per-gate counts of `episodes`, gates without an overtake left out.
+    pub fn tally(episodes: &[EpisodeMetrics]) -> Vec<Self> {
+        let gates = episodes
+            .iter()
+            .map(|e| e.overtakes_by_gate.len())
+            .max()
+            .unwrap_or(0);
+        (0..gates)
+            .map(|gate| {
+                let count = |column: usize| {
+                    episodes
+                        .iter()
+                        .filter_map(|e| e.overtakes_by_gate.get(gate)?.get(column))
+                        .map(|&n| u64::from(n))
+                        .sum()
+                };
+                Self {
+                    gate,
+                    overtakes: count(0),
+                    sustained: count(1),
+                }
+            })
+            .filter(|g| g.overtakes > 0)
+            .collect()
+    }
 }
 
 impl Report {
@@ -225,6 +268,7 @@ impl Report {
             flights: race.then(|| sum(|e| e.flights)),
             win_rate: if race { mean(&wins) } else { None },
             win_rate_ci95: if race { ci95(&wins, 0.0, 1.0) } else { None },
+            overtakes_by_gate: GateOvertakes::tally(episodes),
         }
     }
 
@@ -322,6 +366,22 @@ impl Report {
             if let Some(f) = self.flights {
                 out += &format!(", {f} flights");
             }
+        }
+        if !self.overtakes_by_gate.is_empty() {
+            let held_at = self
+                .overtakes_by_gate
+                .iter()
+                .filter(|g| g.sustained > 0)
+                .count();
+            out += &format!(
+                "\novertakes by the gate the ego flew towards (sustained/all): {}; sustained at {held_at} distinct gate{}",
+                self.overtakes_by_gate
+                    .iter()
+                    .map(|g| format!("g{} {}/{}", g.gate, g.sustained, g.overtakes))
+                    .collect::<Vec<_>>()
+                    .join(", "),
+                if held_at == 1 { "" } else { "s" }
+            );
         }
         out + "\n"
     }

@@ -146,12 +146,18 @@ fn a_scripted_sustained_overtake() {
     assert_eq!(crash, None);
     assert_eq!(m.overtakes, 1);
     assert_eq!(m.sustained_overtakes, 1);
+    // Taken at s = 2.5, flying towards the gate at s = 3: counted there.
+    let gates = Track::figure_eight().gates().len();
+    assert_eq!(m.overtakes_by_gate.len(), 3 % gates + 1, "{m:?}");
+    assert_eq!(m.overtakes_by_gate.get(3 % gates), Some(&[1, 1]));
+    assert_eq!(m.overtakes_by_gate.iter().flatten().sum::<u32>(), 2);
     // The ego crossed s = 2, 3, …, 10 (it ends at s = 10.9): 9 gates.
     assert_eq!(m.gates_passed, 9);
 
     // Stopping at 2.9 s, before the lead is 2 s old: the overtake is not sustained yet.
     let (m, _) = script(&world(CrashRules::STAGE2), starts, [&ego, &opp], 2.9);
     assert_eq!((m.overtakes, m.sustained_overtakes), (1, 0));
+    assert_eq!(m.overtakes_by_gate.get(3 % gates), Some(&[1, 0]));
     let (m, _) = script(&world(CrashRules::STAGE2), starts, [&ego, &opp], 3.02);
     assert_eq!((m.overtakes, m.sustained_overtakes), (1, 1));
 }
@@ -256,6 +262,8 @@ fn recorded_traces_mark_the_referees_overtakes() {
         assert_eq!(t.overtakes.len() as u32, e.metrics.overtakes);
         let sustained = t.overtakes.iter().filter(|m| m.sustained).count() as u32;
         assert_eq!(sustained, e.metrics.sustained_overtakes);
+        let by_gate = |c: usize| -> u32 { e.metrics.overtakes_by_gate.iter().map(|g| g[c]).sum() };
+        assert_eq!((by_gate(0), by_gate(1)), (e.metrics.overtakes, sustained));
         for m in &t.overtakes {
             assert!((m.step as usize) <= t.ego_m.len() && m.step > 0);
         }

@@ -73,6 +73,10 @@ pub struct EpisodeMetrics {
     pub flights_won: u32,
     /// Flights that ended level (both crashing, or at the episode's end).
     pub flights_tied: u32,
+    /// Where the overtakes happened: entry `g` counts `[overtakes, sustained]` taken while
+    /// the ego flew towards gate `g` (as long as the highest such gate needs; empty without
+    /// an overtake).
+    pub overtakes_by_gate: Vec<[u32; 2]>,
 }
 
 /// Crashes counted by cause.
@@ -152,7 +156,13 @@ impl EpisodeMetrics {
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Lead {
     Behind,
-    Ahead { since_s: f32, sustained: bool },
+    /// Ahead since `since_s`, the lead taken while flying towards `gate` (`None`: at a
+    /// spawn, not an overtake).
+    Ahead {
+        since_s: f32,
+        sustained: bool,
+        gate: Option<usize>,
+    },
 }
 
 /// Progress along the track's centreline (m), counted on across laps: what the referee
@@ -260,6 +270,7 @@ impl Referee {
             Some(l) if l > 0.0 => Lead::Ahead {
                 since_s: self.time_s(),
                 sustained: true,
+                gate: None,
             },
             _ => Lead::Behind,
         };
@@ -330,20 +341,26 @@ impl Referee {
             self.lead = match self.lead {
                 Lead::Behind if lead > 0.0 => {
                     self.metrics.overtakes += 1;
+                    let gate = drones.first().map(|d| d.progress.target);
+                    self.count_at_gate(gate, 0);
                     Lead::Ahead {
                         since_s: t,
                         sustained: false,
+                        gate,
                     }
                 }
                 Lead::Ahead { .. } if lead <= 0.0 => Lead::Behind,
                 Lead::Ahead {
                     since_s,
                     sustained: false,
+                    gate,
                 } if t - since_s >= SUSTAINED_LEAD_S - 0.5 * self.dt_s => {
                     self.metrics.sustained_overtakes += 1;
+                    self.count_at_gate(gate, 1);
                     Lead::Ahead {
                         since_s,
                         sustained: true,
+                        gate,
                     }
                 }
                 other => other,
@@ -365,6 +382,18 @@ impl Referee {
             self.judge_flight(Some(lead));
         }
         self.metrics
+    }
+
+    /// Counts an overtake (`column` 0) or its being sustained (1) at `gate`.
+    fn count_at_gate(&mut self, gate: Option<usize>, column: usize) {
+        let Some(g) = gate else { return };
+        let by_gate = &mut self.metrics.overtakes_by_gate;
+        if by_gate.len() <= g {
+            by_gate.resize(g + 1, [0; 2]);
+        }
+        if let Some(n) = by_gate.get_mut(g).and_then(|c| c.get_mut(column)) {
+            *n += 1;
+        }
     }
 
     /// A flight that ended with both drones in the air or both crashed: the one ahead along
