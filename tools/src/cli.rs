@@ -185,7 +185,8 @@ mod tests {
                 episode: None,
                 overtake: None,
                 window_s: 8.0,
-                out: "overtake.svg".into()
+                out: "overtake.svg".into(),
+                summary: false
             })
         );
         assert_eq!(
@@ -200,14 +201,16 @@ mod tests {
                 "--window-s",
                 "4",
                 "--out",
-                "o.svg"
+                "o.svg",
+                "--summary"
             ]),
             Command::OvertakeFigure(figure::FigureArgs {
                 trace: "t.json".into(),
                 episode: Some(2),
                 overtake: Some(1),
                 window_s: 4.0,
-                out: "o.svg".into()
+                out: "o.svg".into(),
+                summary: true
             })
         );
     }

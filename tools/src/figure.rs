@@ -32,6 +32,11 @@ pub struct FigureArgs {
     /// The SVG to write.
     #[arg(long, value_name = "FILE", default_value = "overtake.svg")]
     pub out: PathBuf,
+    /// Also print a Markdown table of every sustained overtake in the file, per gate: how
+    /// many were wide in and tight out, and the mean speeds and line offsets at entry, pass
+    /// and exit (`tools::manoeuvre`).
+    #[arg(long)]
+    pub summary: bool,
 }
 
 /// `--window-s`: seconds in (0, 60].
@@ -163,6 +168,20 @@ pub fn run(args: &FigureArgs) -> Result<ExitCode> {
         },
         args.window_s
     );
+    let line = crate::manoeuvre::Line::new(&track);
+    if let Some(m) = crate::manoeuvre::measure(&line, trace, k) {
+        println!("the pass: {}", crate::manoeuvre::describe(&m));
+    }
+    if args.summary {
+        let all = crate::manoeuvre::measure_all(&line, &episodes);
+        println!(
+            "\n{} overtakes measured, {} sustained; sustained ones per gate ({} s before and after the pass):\n{}",
+            all.len(),
+            all.iter().filter(|m| m.sustained).count(),
+            crate::manoeuvre::LOOK_S,
+            crate::manoeuvre::summary(&all)
+        );
+    }
     Ok(ExitCode::SUCCESS)
 }
 

@@ -23,6 +23,7 @@ pub mod curves;
 pub mod error;
 pub mod figure;
 pub mod inspect;
+pub mod manoeuvre;
 pub mod size;
 
 pub use error::{Error, Result};
