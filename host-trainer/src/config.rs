@@ -239,10 +239,37 @@ pub struct RunConfig {
     /// lower crash rate, then the earlier iteration) instead of the last one. Default off.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub keep_best: bool,
+    /// What `keep_best` ranks a race's evaluations by: "success" (the default, as above) or
+    /// "win-rate": the evaluations at or above [`RACE_SUCCESS_FLOOR`] success first, among
+    /// them the higher win rate, then the higher success; below the floor, by success.
+    #[serde(default, skip_serializing_if = "KeepBestBy::is_default")]
+    pub keep_best_by: KeepBestBy,
     /// With `keep_best` in a time trial: rank the candidates on this validation instead of
     /// the referee's stage-1 episode, which is the evaluation the result is judged on.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub select: Option<Selection>,
+}
+
+/// The success rate a race's candidate must reach before `run.keep_best_by = "win-rate"`
+/// ranks it by its win rate (issue "race": success >= 0.9).
+pub const RACE_SUCCESS_FLOOR: f64 = 0.9;
+
+/// What `run.keep_best` ranks a race's evaluations by (`run.keep_best_by`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum KeepBestBy {
+    /// The higher success rate, then the fewer crashes per second.
+    #[default]
+    Success,
+    /// Success at or above [`RACE_SUCCESS_FLOOR`] first; then the higher win rate, then the
+    /// higher success rate, then the fewer crashes.
+    WinRate,
+}
+
+impl KeepBestBy {
+    fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
 }
 
 /// The validation `run.keep_best` ranks a time trial's candidates by (`run.select`): the

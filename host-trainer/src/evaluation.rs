@@ -2,7 +2,7 @@
 //! `run.eval_every` iterations (and of every warm-start round with
 //! `warm_start.keep_best_round`), and the order in which `run.keep_best` ranks evaluations.
 
-use crate::config::{RunConfig, Selection, TrainConfig};
+use crate::config::{KeepBestBy, RACE_SUCCESS_FLOOR, RunConfig, Selection, TrainConfig};
 use crate::metrics::IterationMetrics;
 use sitl::dynamics::Preset;
 use sitl::eval::{EvalConfig, Report, report};
@@ -82,19 +82,31 @@ fn score(success: Option<f64>, crashes: Option<f64>, lap_s: Option<f64>) -> (f64
 }
 
 /// `run.keep_best`'s key of evaluation `m`, `None` where it is no candidate: without
-/// `run.select`, the in-training referee's success and crashes; with it, the validation's
-/// success, crashes and mean lap, from `run.select.from_iteration` on.
-fn candidate_score(m: &IterationMetrics, run: &RunConfig) -> Option<(f64, f64, f64)> {
+/// `run.select`, the in-training referee's success and crashes (with `run.keep_best_by =
+/// "win-rate"`: whether the success reaches [`RACE_SUCCESS_FLOOR`], then the win rate, the
+/// success and the crashes; below the floor the success and crashes); with it, the
+/// validation's success, crashes and mean lap, from `run.select.from_iteration` on.
+fn candidate_score(m: &IterationMetrics, run: &RunConfig) -> Option<(f64, f64, f64, f64)> {
+    let plain = |(a, b, c)| (0.0, a, b, c);
     match &run.select {
+        None if run.keep_best_by == KeepBestBy::WinRate => {
+            let success = m.eval_success_rate?;
+            let crashes = -m.eval_crash_rate.unwrap_or(f64::INFINITY);
+            Some(if success >= RACE_SUCCESS_FLOOR {
+                (1.0, m.eval_win_rate.unwrap_or(0.0), success, crashes)
+            } else {
+                (0.0, success, crashes, 0.0)
+            })
+        }
         None => m
             .eval_success_rate
-            .map(|_| score(m.eval_success_rate, m.eval_crash_rate, None)),
+            .map(|_| plain(score(m.eval_success_rate, m.eval_crash_rate, None))),
         Some(s) if m.iteration >= s.from_iteration => m.select_success_rate.map(|_| {
-            score(
+            plain(score(
                 m.select_success_rate,
                 m.select_crash_rate,
                 m.select_mean_lap_s,
-            )
+            ))
         }),
         Some(_) => None,
     }
@@ -231,6 +243,55 @@ mod tests {
         assert_eq!(
             best_evaluation(&history, &without).map(|m| m.iteration),
             Some(10)
+        );
+    }
+
+    #[test]
+    fn a_race_ranked_by_win_rate_needs_the_success_floor_first() {
+        let race = |iteration, success, crashes, win| IterationMetrics {
+            iteration,
+            eval_success_rate: Some(success),
+            eval_crash_rate: Some(crashes),
+            eval_win_rate: Some(win),
+            ..IterationMetrics::default()
+        };
+        let run = RunConfig {
+            keep_best: true,
+            keep_best_by: KeepBestBy::WinRate,
+            ..RunConfig::default()
+        };
+        let history = [
+            // Below the floor: ranked by success, under every candidate above it.
+            race(10, 0.89, 0.0, 0.95),
+            race(20, 0.95, 0.02, 0.60),
+            // Above the floor, the higher win rate wins over the higher success.
+            race(30, 0.91, 0.05, 0.70),
+            race(40, 0.99, 0.01, 0.65),
+            // Equal win rate: the higher success.
+            race(50, 0.93, 0.04, 0.70),
+            // An exact tie keeps the earlier.
+            race(60, 0.93, 0.04, 0.70),
+        ];
+        assert_eq!(
+            best_evaluation(&history, &run).map(|m| m.iteration),
+            Some(50)
+        );
+        assert_eq!(
+            best_evaluation(&history[..1], &run).map(|m| m.iteration),
+            Some(10)
+        );
+        assert_eq!(
+            best_evaluation(&history[..2], &run).map(|m| m.iteration),
+            Some(20)
+        );
+        // The default ranks by success alone.
+        let by_success = RunConfig {
+            keep_best_by: KeepBestBy::Success,
+            ..run
+        };
+        assert_eq!(
+            best_evaluation(&history, &by_success).map(|m| m.iteration),
+            Some(40)
         );
     }
 }

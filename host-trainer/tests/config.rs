@@ -193,6 +193,34 @@ fn a_selection_is_checked_and_hashed() {
 }
 
 #[test]
+fn ranking_by_win_rate_is_for_races_and_changes_the_hash() {
+    let race = include_str!("../configs/stage2_transplant.toml");
+    let by_win = race.replace(
+        "keep_best = true",
+        "keep_best = true\nkeep_best_by = \"win-rate\"",
+    );
+    assert_ne!(by_win, race);
+    let a = TrainConfig::parse(race).unwrap();
+    let b = TrainConfig::parse(&by_win).unwrap();
+    assert_ne!(a.hash(), b.hash());
+    // Without keep_best, or in a time trial, it is refused by name.
+    let e = TrainConfig::parse(&by_win.replace("keep_best = true\n", ""))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("keep_best_by"), "{e}");
+    let trial = STAGE1.replace(
+        "keep_best = true",
+        "keep_best = true\nkeep_best_by = \"win-rate\"",
+    );
+    let e = TrainConfig::parse(&trial).unwrap_err().to_string();
+    assert!(e.contains("keep_best_by"), "{e}");
+    let e = TrainConfig::parse(&by_win.replace("\"win-rate\"", "\"wins\""))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("keep_best_by") || e.contains("wins"), "{e}");
+}
+
+#[test]
 fn the_presets_in_code_are_the_toml_presets() {
     assert_eq!(TrainConfig::parse(PAPER).unwrap(), TrainConfig::paper());
     assert_eq!(TrainConfig::parse(STAGE1).unwrap(), TrainConfig::ours());

@@ -3,9 +3,9 @@
 //! [`TrainConfig::ours`] (`host-trainer/tests/config.rs` holds each equal to its TOML file).
 
 use super::{
-    PassDecay, PpoConfig, RunConfig, Selection, StdDecay, TrainConfig, UpdateKind, WarmStart,
-    default_eval_every, default_eval_races, default_max_learning_rate, default_min_learning_rate,
-    one,
+    KeepBestBy, PassDecay, PpoConfig, RunConfig, Selection, StdDecay, TrainConfig, UpdateKind,
+    WarmStart, default_eval_every, default_eval_races, default_max_learning_rate,
+    default_min_learning_rate, one,
 };
 use sitl::env::EnvConfig;
 
@@ -108,6 +108,7 @@ impl Default for RunConfig {
             eval_seed: 0,
             eval_jitter: false,
             keep_best: false,
+            keep_best_by: KeepBestBy::Success,
             select: None,
         }
     }

@@ -1,7 +1,7 @@
 //! The checks a configuration passes before a run starts, section by section; each refusal
 //! names the field and the range it must be in.
 
-use super::{ConfigError, TrainConfig, WarmStart};
+use super::{ConfigError, KeepBestBy, TrainConfig, WarmStart};
 use sitl::env::Competition;
 
 fn bad(m: impl Into<String>) -> Result<(), ConfigError> {
@@ -55,6 +55,11 @@ fn run(c: &TrainConfig) -> Result<(), ConfigError> {
     }
     if c.run.eval_races == 0 {
         return bad("run.eval_races must be positive");
+    }
+    if c.run.keep_best_by == KeepBestBy::WinRate && (!c.run.keep_best || c.env.race.is_none()) {
+        return bad(
+            "run.keep_best_by = \"win-rate\" ranks the candidates of a race's run.keep_best; set keep_best = true and a [race]",
+        );
     }
     if let Some(s) = &c.run.select {
         if !c.run.keep_best {
