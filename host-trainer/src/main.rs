@@ -59,6 +59,10 @@ enum Command {
         /// Stop after this many iterations of this invocation (a checkpoint is written).
         #[arg(long)]
         stop_after: Option<u32>,
+        /// Train with this seed instead of the config's `run.seed` (another seed of the same
+        /// recipe; the run's own config.toml records it, so `--resume` from it needs none).
+        #[arg(long)]
+        seed: Option<u64>,
         /// Start the actor from this row-A blob (fine-tuning) instead of a random
         /// initialisation and the config's warm start.
         #[arg(long)]
@@ -157,11 +161,13 @@ fn main() -> ExitCode {
             device: backend,
             quiet,
             stop_after,
+            seed,
             init_actor,
             fork_from,
         } => device(backend).and_then(|device| {
             train(
                 &config,
+                seed,
                 RunOptions {
                     out,
                     resume,
@@ -205,9 +211,13 @@ fn main() -> ExitCode {
     }
 }
 
-/// `train`: runs (or resumes) the run of `config` and prints where it ended.
-fn train(config: &Path, options: RunOptions) -> Result<(), String> {
-    let cfg = TrainConfig::load(config).map_err(|e| format!("{}: {e}", config.display()))?;
+/// `train`: runs (or resumes) the run of `config` (with `seed` instead of its own, if given)
+/// and prints where it ended.
+fn train(config: &Path, seed: Option<u64>, options: RunOptions) -> Result<(), String> {
+    let mut cfg = TrainConfig::load(config).map_err(|e| format!("{}: {e}", config.display()))?;
+    if let Some(seed) = seed {
+        cfg.run.seed = seed;
+    }
     println!(
         "training '{}' (row {}, seed {}, {} envs x {} steps = {} samples per iteration, {} iterations, config hash {:016x}) into {}",
         cfg.run.name,

@@ -577,3 +577,43 @@ fn a_run_too_big_for_memory_is_refused_before_it_starts() {
         "a refused run wrote checkpoints"
     );
 }
+
+/// `train --seed N` trains the config's recipe with another seed: the run's own config.toml
+/// records it (so `--resume` from that file continues the same seed) and the run differs
+/// from the config's seed.
+#[test]
+fn another_seed_from_the_command_line_is_recorded_and_resumes() {
+    let bin = env!("CARGO_BIN_EXE_host-trainer");
+    let config = concat!(env!("CARGO_MANIFEST_DIR"), "/configs/smoke.toml");
+    let train = |out: &Path, extra: &[&str]| {
+        let status = std::process::Command::new(bin)
+            .args(["train", "--quiet", "--out"])
+            .arg(out)
+            .args(extra)
+            .stdout(std::process::Stdio::null())
+            .status()
+            .unwrap();
+        assert!(status.success(), "{extra:?}");
+    };
+    let seeded = tmp("cli_seed_5");
+    train(
+        &seeded,
+        &["--config", config, "--seed", "5", "--stop-after", "1"],
+    );
+    let recorded = TrainConfig::load(&seeded.join("config.toml")).unwrap();
+    assert_eq!(recorded.run.seed, 5);
+    let own = seeded.join("config.toml");
+    train(&seeded, &["--config", own.to_str().unwrap(), "--resume"]);
+    let plain = tmp("cli_seed_default");
+    train(&plain, &["--config", config, "--stop-after", "1"]);
+    let (a, b) = (metrics(&seeded), metrics(&plain));
+    assert_eq!(
+        a.len(),
+        TrainConfig::parse(CONFIG).unwrap().run.iterations as usize
+    );
+    assert_ne!(
+        a.first().map(|m| m.episode_return),
+        b.first().map(|m| m.episode_return),
+        "seed 5 trains another run than the config's seed 1"
+    );
+}
