@@ -517,3 +517,34 @@ fn the_blessed_stage2_config_is_the_one_that_made_the_shipped_race_ego() {
     let stage1 = TrainConfig::parse(STAGE1).unwrap();
     assert_eq!(stage1.run.name, "stage1");
 }
+
+/// `configs/stage2_long.toml` (what `sitl race` flies) is `stage2_transplant.toml` with the
+/// faster teacher and its own name and seed, and `experiments/race_long.toml` (run long2)
+/// under another name and seed; the teacher is `experiments/stage1_long.toml`'s blob, which is
+/// `stage1.toml` with a larger budget.
+#[test]
+fn the_long_stage2_recipe_is_the_transplant_recipe_with_the_long_teacher() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let load = |p: &str| TrainConfig::load(&root.join(p)).unwrap();
+    let long = load("stage2_long.toml");
+    assert_eq!(long.run.seed, 2, "seed 2 of three ships");
+    let mut renamed = load("experiments/race_long.toml");
+    renamed.run.name = long.run.name.clone();
+    renamed.run.seed = long.run.seed;
+    renamed.env.seed = long.env.seed;
+    assert_eq!(renamed, long);
+    let mut transplant = load("stage2_transplant.toml");
+    transplant.run.name = long.run.name.clone();
+    transplant.run.seed = long.run.seed;
+    transplant.env.seed = long.env.seed;
+    if let Some(w) = transplant.warm_start.as_mut() {
+        w.teacher_blob = Some("policies/stage1_long.blob".into());
+    }
+    assert_eq!(transplant, long);
+    let mut stage1_long = load("experiments/stage1_long.toml");
+    let stage1 = TrainConfig::parse(STAGE1).unwrap();
+    assert_eq!(stage1_long.run.iterations, 2 * stage1.run.iterations);
+    stage1_long.run.iterations = stage1.run.iterations;
+    stage1_long.run.name = stage1.run.name.clone();
+    assert_eq!(stage1_long, stage1);
+}

@@ -6,7 +6,8 @@ use std::path::PathBuf;
 
 /// `sitl race`'s ego, the first of these in `policies/` that exists: the stage-2 (race)
 /// policies in order of preference, then stage-1 ones.
-pub const RACE_EGOS: [&str; 5] = [
+pub const RACE_EGOS: [&str; 6] = [
+    "stage2_long.blob",
     "stage2_transplant.blob",
     "stage2.blob",
     "stage1.blob",

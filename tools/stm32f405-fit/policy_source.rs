@@ -32,7 +32,11 @@ pub const STAGE1: ImagePolicy = ImagePolicy {
 pub const STAGE2: ImagePolicy = ImagePolicy {
     role: "stage 2",
     row: TableRow::G,
-    candidates: &["policies/stage2_transplant.blob", "policies/stage2.blob"],
+    candidates: &[
+        "policies/stage2_long.blob",
+        "policies/stage2_transplant.blob",
+        "policies/stage2.blob",
+    ],
 };
 
 /// Both slots, in the order the image holds them (the build scripts write slot `n` as
