@@ -217,6 +217,7 @@ fn train(config: &Path, seed: Option<u64>, options: RunOptions) -> Result<(), St
     let mut cfg = TrainConfig::load(config).map_err(|e| format!("{}: {e}", config.display()))?;
     if let Some(seed) = seed {
         cfg.run.seed = seed;
+        cfg.env = cfg.env_config(seed);
     }
     println!(
         "training '{}' (row {}, seed {}, {} envs x {} steps = {} samples per iteration, {} iterations, config hash {:016x}) into {}",

@@ -499,12 +499,12 @@ fn environment_errors_name_the_field() {
     }
 }
 
-/// The blessed stage-2 path is the config that made what `sitl race` flies:
+/// The previous stage-2 path (what `sitl race` flew until `stage2_long.toml`):
 /// `configs/stage2_transplant.toml` is, parsed, the run's own `config.toml` beside
 /// `policies/stage2_transplant.blob` (whose provenance `shipped_policies.rs` checks against
 /// it), and it starts from the stage-1 blob that `configs/stage1.toml` makes.
 #[test]
-fn the_blessed_stage2_config_is_the_one_that_made_the_shipped_race_ego() {
+fn the_transplant_stage2_config_is_the_one_that_made_its_race_ego() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let blessed =
         TrainConfig::load(&root.join("host-trainer/configs/stage2_transplant.toml")).unwrap();

@@ -602,6 +602,13 @@ fn another_seed_from_the_command_line_is_recorded_and_resumes() {
     );
     let recorded = TrainConfig::load(&seeded.join("config.toml")).unwrap();
     assert_eq!(recorded.run.seed, 5);
+    let mut expected = TrainConfig::load(std::path::Path::new(config)).unwrap();
+    expected.run.seed = 5;
+    expected.env = expected.env_config(5);
+    assert_eq!(
+        recorded, expected,
+        "the recipe with seed 5, nothing else changed"
+    );
     let own = seeded.join("config.toml");
     train(&seeded, &["--config", own.to_str().unwrap(), "--resume"]);
     let plain = tmp("cli_seed_default");
@@ -614,6 +621,6 @@ fn another_seed_from_the_command_line_is_recorded_and_resumes() {
     assert_ne!(
         a.first().map(|m| m.episode_return),
         b.first().map(|m| m.episode_return),
-        "seed 5 trains another run than the config's seed 1"
+        "seed 5 trains another run than the config's own seed"
     );
 }

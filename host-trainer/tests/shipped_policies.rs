@@ -101,7 +101,16 @@ fn the_long_stage1_policy_is_its_config_and_flies_as_recorded() {
 /// (docs/RESULTS.md), and nothing here claims more.
 #[test]
 fn the_race_ego_meets_the_race_bars_on_both_seeds() {
+    let raw = std::fs::read(root().join("policies/stage2_long.blob")).unwrap();
     for (file, seed, races) in [("eval.json", 0, 20), ("eval_seed2000.json", 2000, 100)] {
+        // The blob races as each report records (gates, crashes, overtakes, win rate, the
+        // overtakes by gate), so the bars below are the blob's.
+        races_as_recorded_in(
+            "stage2_long",
+            &raw,
+            "policies/stage1.blob",
+            &format!("policies/stage2_long/{file}"),
+        );
         let r: serde_json::Value = serde_json::from_str(
             &std::fs::read_to_string(root().join("policies/stage2_long").join(file)).unwrap(),
         )
@@ -245,10 +254,19 @@ fn shipped_blob(name: &str, config: &str) -> (Vec<u8>, TrainConfig, u32) {
 /// The blob `raw` races `opponent` (a path from the repository root) exactly as the
 /// referee's report `policies/{dir}/eval.json` records.
 fn races_as_recorded(name: &str, raw: &[u8], opponent: &str, dir: &str) {
-    let recorded: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(root().join(format!("policies/{dir}/eval.json"))).unwrap(),
-    )
-    .unwrap();
+    races_as_recorded_in(name, raw, opponent, &format!("policies/{dir}/eval.json"));
+}
+
+/// The blob `raw` races `opponent` exactly as the nominal race report at `report` (a path
+/// from the repository root) records: gates, crashes, overtakes, and where the report has
+/// them, the win rate and the overtakes by gate.
+fn races_as_recorded_in(name: &str, raw: &[u8], opponent: &str, report_path: &str) {
+    let recorded: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(root().join(report_path)).unwrap()).unwrap();
+    assert!(
+        recorded.get("perturbation").is_none(),
+        "{report_path}: nominal races"
+    );
     let ego = PilotSpec::from_blob(name, raw).unwrap();
     let opponent_raw = std::fs::read(root().join(opponent)).unwrap();
     let opponent = PilotSpec::from_blob("opponent", &opponent_raw).unwrap();
@@ -269,6 +287,23 @@ fn races_as_recorded(name: &str, raw: &[u8], opponent: &str, dir: &str) {
         r.sustained_overtakes,
         recorded["sustained_overtakes"].as_u64().unwrap()
     );
+    if let Some(w) = recorded.get("win_rate").and_then(|w| w.as_f64()) {
+        assert!((r.win_rate.unwrap() - w).abs() < 1e-12, "{name}: win rate");
+    }
+    if let Some(by_gate) = recorded.get("overtakes_by_gate") {
+        let replayed: Vec<[u64; 3]> = r
+            .overtakes_by_gate
+            .iter()
+            .map(|g| [g.gate as u64, g.overtakes, g.sustained])
+            .collect();
+        let recorded: Vec<[u64; 3]> = by_gate
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|g| ["gate", "overtakes", "sustained"].map(|k| g[k].as_u64().unwrap()))
+            .collect();
+        assert_eq!(replayed, recorded, "{name}: overtakes by gate");
+    }
 }
 
 fn check(name: &str, config: &str, recorded_lap_s: f64) {

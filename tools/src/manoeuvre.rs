@@ -7,13 +7,16 @@
 //! to the flight the pass belongs to (between two respawns). At each moment:
 //! - speeds (m/s) of both drones;
 //! - each drone's *inside offset* (m): its horizontal distance from the centreline, positive
-//!   towards the inside of the turn the centreline makes there (towards its centre of
-//!   curvature), negative towards the outside; on a straight (curvature below
-//!   [`STRAIGHT_PER_M`]) the sign is that of the left side;
+//!   towards the inside of the turn the centreline makes at the pass (towards its centre of
+//!   curvature there), negative towards the outside; every sample of a pass uses that one
+//!   side, and a pass on a straight (curvature below [`STRAIGHT_PER_M`]) counts left as
+//!   inside;
 //! - the ego's lead along the track (m, the referee's).
 //!
 //! The centreline segment a drone flies is the nearest one at the pass, then the nearest of
-//! that segment and its two neighbours at entry and exit (the figure-8 crosses itself).
+//! that segment and its two neighbours at entry and exit (the figure-8 crosses itself; at
+//! its crossing, between g0 and g3, the nearest segment at the pass can be the other
+//! branch, so a pass there may be named by the other gate).
 
 use firmware_core::math::Vec3;
 use firmware_core::track::{Centerline, Track};
@@ -103,19 +106,19 @@ impl Line {
         self.line.segments().max(1)
     }
 
-    /// The parameter of the nearest point to `p` among `segments`.
-    fn nearest(&self, p: Vec3, segments: impl Iterator<Item = usize>) -> f32 {
+    /// The segment and the parameter of the nearest point to `p` among `segments`.
+    fn nearest(&self, p: Vec3, segments: impl Iterator<Item = usize>) -> (usize, f32) {
         let d2 = |s: f32| {
             let d = self.line.point(s) - p;
             d.dot(d)
         };
         segments
-            .map(|k| self.line.nearest_on_segment(k, p))
-            .fold(None, |best: Option<f32>, s| match best {
-                Some(b) if d2(b) <= d2(s) => Some(b),
-                _ => Some(s),
+            .map(|k| (k, self.line.nearest_on_segment(k, p)))
+            .fold(None, |best: Option<(usize, f32)>, (k, s)| match best {
+                Some(b) if d2(b.1) <= d2(s) => Some(b),
+                _ => Some((k, s)),
             })
-            .unwrap_or(0.0)
+            .unwrap_or((0, 0.0))
     }
 
     /// Signed horizontal curvature (1/m) at parameter `s`: positive for a left turn.
@@ -135,17 +138,21 @@ impl Line {
         cross.atan2(dot) / (0.5 * (la + lb) * 2.0 * h)
     }
 
-    /// Offset of `p` from the point at `s` (m), horizontal, positive towards the inside
-    /// of the turn there (its left on a straight).
-    fn inside_m(&self, s: f32, p: Vec3) -> f32 {
+    /// Offset of `p` from the point at `s` (m), horizontal, positive to the left of the
+    /// line's direction there times `side` (+1: left is inside, -1: right is).
+    fn offset_m(&self, s: f32, p: Vec3, side: f32) -> f32 {
         let t = self.line.tangent(s);
         let norm = (t.x * t.x + t.y * t.y).sqrt().max(1e-6);
         let left = Vec3::new(-t.y / norm, t.x / norm, 0.0);
-        let offset = (p - self.line.point(s)).dot(left);
+        (p - self.line.point(s)).dot(left) * side
+    }
+
+    /// +1 where the line turns left at `s` or runs straight, -1 where it turns right.
+    fn inside_side(&self, s: f32) -> f32 {
         if self.curvature_per_m(s) <= -STRAIGHT_PER_M {
-            -offset
+            -1.0
         } else {
-            offset
+            1.0
         }
     }
 }
@@ -181,13 +188,15 @@ pub fn measure(line: &Line, trace: &Trace, k: usize) -> Option<Manoeuvre> {
         .map_or(steps - 1, |r| r - 1);
     let look = (LOOK_S / trace.dt_s.max(1e-3)).round() as usize;
     let n = line.segments();
-    let ego_s = line.nearest(*trace.ego_m.get(at)?, 0..n);
-    let segment = (ego_s.floor().max(0.0) as usize) % n;
+    let (segment, ego_s) = line.nearest(*trace.ego_m.get(at)?, 0..n);
     let near = [segment + n - 1, segment, segment + 1].map(|k| k % n);
+    // Every sample of the pass is signed by the turn at the pass, so entry and exit compare
+    // sides of one turn even where the line changes direction between them.
+    let side = line.inside_side(ego_s);
     let moment = |i: usize| -> Option<Moment> {
         let sample = |p: Vec3, v: f32| Sample {
             speed_mps: v,
-            inside_m: line.inside_m(line.nearest(p, near.into_iter()), p),
+            inside_m: line.offset_m(line.nearest(p, near.into_iter()).1, p, side),
         };
         Some(Moment {
             dt_s: (i as f32 - at as f32) * trace.dt_s,
@@ -310,14 +319,31 @@ mod tests {
     fn a_scripted_wide_in_tight_out_pass_is_measured_as_one() {
         let track = Track::figure_eight();
         let line = Line::new(&track);
+        // Turns found without the code under test: the sign of the z component of
+        // (P(s) - P(s - h)) x (P(s + h) - P(s)), positive for a left turn seen from above.
+        let c = Centerline::new(&track);
+        let bend = |s: f32| {
+            let h = 0.05;
+            let (a, b) = (c.point(s) - c.point(s - h), c.point(s + h) - c.point(s));
+            (a.x * b.y - a.y * b.x) / ((a.x * a.x + a.y * a.y) * (b.x * b.x + b.y * b.y)).sqrt()
+        };
         let turn = |left: bool| {
-            (0..600)
+            let s = (0..600)
                 .map(|i| i as f32 / 100.0)
                 .find(|&s| {
-                    let k = line.curvature_per_m(s);
-                    if left { k > 0.15 } else { k < -0.15 }
+                    if left {
+                        bend(s) > 0.05
+                    } else {
+                        bend(s) < -0.05
+                    }
                 })
-                .expect("the figure-8 turns both ways")
+                .expect("the figure-8 turns both ways");
+            assert_eq!(
+                line.curvature_per_m(s) > 0.0,
+                left,
+                "the turn's sign at {s}"
+            );
+            s
         };
         scripted_pass(&track, &line, turn(true));
         scripted_pass(&track, &line, turn(false));
@@ -325,7 +351,13 @@ mod tests {
 
     fn scripted_pass(track: &Track<'_>, line: &Line, s0: f32) {
         let c = Centerline::new(track);
-        let sign = line.curvature_per_m(s0).signum();
+        // The inside is the left in a left turn: the sign of the independent bend.
+        let bend = {
+            let h = 0.05;
+            let (a, b) = (c.point(s0) - c.point(s0 - h), c.point(s0 + h) - c.point(s0));
+            a.x * b.y - a.y * b.x
+        };
+        let sign = bend.signum();
         let at = |s: f32, inside: f32| {
             let t = c.tangent(s);
             let norm = (t.x * t.x + t.y * t.y).sqrt();
