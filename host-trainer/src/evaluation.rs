@@ -91,11 +91,11 @@ fn candidate_score(m: &IterationMetrics, run: &RunConfig) -> Option<(f64, f64, f
     match &run.select {
         None if run.keep_best_by == KeepBestBy::WinRate => {
             let success = m.eval_success_rate?;
-            let crashes = -m.eval_crash_rate.unwrap_or(f64::INFINITY);
+            let (_, crashes, _) = score(None, m.eval_crash_rate, None);
             Some(if success >= RACE_SUCCESS_FLOOR {
                 (1.0, m.eval_win_rate.unwrap_or(0.0), success, crashes)
             } else {
-                (0.0, success, crashes, 0.0)
+                plain(score(Some(success), m.eval_crash_rate, None))
             })
         }
         None => m

@@ -289,8 +289,9 @@ fn flying_policy<'w>(payload: &'w [f32], arch: &Architecture) -> Result<Policy<'
 /// The one DAgger loop of both warm starts: every round the student and the teacher fly a
 /// round on the config's environment (a recurrent student from fresh spawns, so its state
 /// starts at zero), the teacher labels the states, the data is kept by `fit`, and
-/// `warm.epochs` passes of `fit` regress the student's mean onto the labels. Returns the student (σ unchanged) with the
-/// rounds' statistics; `log` receives one line per round with the round's student.
+/// `warm.epochs` passes of `fit` regress the student's mean onto the labels. Returns the
+/// student (σ unchanged) with the rounds' statistics; `log` receives one line per round with
+/// the round's student.
 fn dagger<A: PolicyNet>(
     mut actor: A,
     fit: &mut dyn Regression<A>,
