@@ -6,7 +6,7 @@ as a Markdown table: win rate [95 %] (flights); success, crashes /s, best lap, s
 all overtakes, and the gates with a sustained overtake.
 
     python3 tools/head_to_head.py --sitl target/release/sitl \\
-        policies/stage2.blob=policies/stage1.blob policies/stage1.blob=policies/stage1.blob
+        policies/stage2_G.blob=policies/stage1.blob policies/stage1.blob=policies/stage1.blob
 """
 
 import argparse

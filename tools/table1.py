@@ -3,16 +3,19 @@
 
 usage: python3 tools/table1.py [POLICIES_DIR]
 
-Reads POLICIES_DIR/stage1/eval.json for row A (a time trial from the stage-1
-spawn) and POLICIES_DIR/stage2/eval.json (row G) and POLICIES_DIR/stage2_{B..F}/eval.json
-(the ablations) for the races, each written by `sitl eval --json` (20 or more seeded 45 s
-episodes; the commands are in docs/RESULTS.md). Prints a Markdown table: every metric with
-its 95 % interval (Student t over episodes, as the referee computes it) and the paper's
-value beside it. A row whose report is missing is printed as "not trained". Then the
-budget of every trained stage-2 row, from its `config.toml` and `metrics.jsonl`: the
-warm start's DAgger rounds and env steps, the PPO iterations and samples, and the wall-clock
-time of the run (row G's first warm-start stage, `stage2_G_student`, is its own run and is
-added). Standard library only (Python 3.11+).
+Reads POLICIES_DIR/stage1/eval.json for row A (a time trial from the stage-1 spawn),
+POLICIES_DIR/stage2_{B..F}/eval.json (the ablations, imitation students racing
+stage1_guarded.blob), POLICIES_DIR/stage2_G/eval.json (row G by the same imitation
+pipeline) and POLICIES_DIR/stage2/eval.json (row G by PPO, racing stage1.blob), each written
+by `sitl eval --json` (20 or more seeded 45 s episodes; the commands are in docs/RESULTS.md).
+Prints a Markdown table: every metric with its 95 % interval (Student t over episodes, as the
+referee computes it), the opponent and the win rate where the report has them, and the
+paper's value beside it. A row whose report is missing is printed as "not trained". Then the
+budget of every trained stage-2 row, from its `config.toml` and `metrics.jsonl`: the warm
+start's DAgger rounds and env steps, the PPO iterations and samples, and the wall-clock time
+of the run, with the runs it starts from (the imitation row G's first warm-start stage,
+`stage2_G_student`; a transplant's teacher, e.g. `stage1_long`). Standard library only
+(Python 3.11+).
 """
 import json
 import os
@@ -39,16 +42,30 @@ NAMES = {
     "F": "(F) 2-layer LSTM + 3-layer MLP",
     "G": "(G) 2-layer LSTM + 4-layer MLP",
 }
-REPORTS = {"A": "stage1", "G": "stage2"}
+# (row, label, report directory): the rows in the order printed.
+ROWS = [
+    ("A", f"**{NAMES['A']}** (`stage1`: PPO from a random network)", "stage1"),
+    *((r, NAMES[r], f"stage2_{r}") for r in "BCDEF"),
+    ("G", NAMES["G"] + " (`stage2_G`: imitation, DAgger)", "stage2_G"),
+    ("G", f"**{NAMES['G']}** (`stage2`: PPO, what `sitl race` flies)", "stage2"),
+]
 
 
 def interval(value, ci):
     return f"{value:.3f} [{ci[0]:.3f}, {ci[1]:.3f}]"
 
 
-def row(letter, report):
+def opponent(report):
+    """The opponent's blob name (`stage1`), or a dash in a time trial."""
+    name = report.get("opponent")
+    if name is None:
+        return "—"
+    return os.path.basename(name.split(" ")[0]).removesuffix(".blob")
+
+
+def row(letter, label, report):
     if report is None:
-        return [NAMES[letter], "not trained", "", "", "", "", *PAPER[letter]]
+        return [label, "not trained", "", "", "", "", "", "", *PAPER[letter]]
     lap = "DNF" if report["best_lap_s"] is None else f"{report['best_lap_s']:.2f}"
     if letter == "A":
         ours = "—"
@@ -59,14 +76,18 @@ def row(letter, report):
             f"{report['sustained_overtake_rate']:.2f} "
             f"({report['sustained_overtakes']}/{report['overtakes']})"
         )
+    win = report.get("win_rate")
+    win = "—" if win is None else interval(win, report["win_rate_ci95"])
     return [
-        NAMES[letter],
+        label,
+        opponent(report),
         f"{report['episodes']} × {report['episode_seconds']:.0f} s",
         interval(report["success_rate"], report["success_rate_ci95"])
         + f" ({report['gates_passed']}/{report['gates_encountered']})",
         interval(report["crash_rate"], report["crash_rate_ci95"]),
         lap,
         ours,
+        win,
         *PAPER[letter],
     ]
 
@@ -75,11 +96,13 @@ def main():
     root = sys.argv[1] if len(sys.argv) > 1 else "policies"
     header = [
         "policy",
+        "opponent",
         "episodes",
         "success [95 %]",
         "crashes /s [95 %]",
         "best lap (s)",
         "sustained overtakes",
+        "win rate [95 %]",
         "paper: success",
         "paper: crashes /s",
         "paper: lap (s)",
@@ -87,10 +110,10 @@ def main():
     ]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
-    for letter in "ABCDEFG":
-        path = os.path.join(root, REPORTS.get(letter, f"stage2_{letter}"), "eval.json")
+    for letter, label, name in ROWS:
+        path = os.path.join(root, name, "eval.json")
         report = json.load(open(path)) if os.path.exists(path) else None
-        print("| " + " | ".join(row(letter, report)) + " |")
+        print("| " + " | ".join(row(letter, label, report)) + " |")
     budget(root)
 
 
@@ -107,33 +130,44 @@ def warm_steps(config):
     )
 
 
+def last_wall_s(directory):
+    """The wall clock (s) of the run whose metrics.jsonl is in `directory`."""
+    for line in open(os.path.join(directory, "metrics.jsonl")):
+        last = json.loads(line)
+    return last["wall_s"], last["samples"]
+
+
 def budget(root):
     print()
     print("| row | warm-start rounds | warm-start env steps | PPO iterations (critic-only) | PPO samples | wall clock |")
     print("|---|---|---|---|---|---|")
-    for letter in "BCDEFG":
-        name = REPORTS.get(letter, f"stage2_{letter}")
+    for letter, _, name in ROWS[1:]:
         directory = os.path.join(root, name)
         if not os.path.exists(os.path.join(directory, "metrics.jsonl")):
             continue
         config = tomllib.load(open(os.path.join(directory, "config.toml"), "rb"))
         rounds, steps = warm_steps(config)
-        wall_s = 0.0
-        for line in open(os.path.join(directory, "metrics.jsonl")):
-            last = json.loads(line)
-        wall_s += last["wall_s"]
-        if letter == "G":
+        wall_s, samples = last_wall_s(directory)
+        note = ""
+        if name == "stage2_G":
             first = tomllib.load(open(os.path.join(root, "stage2_G_student", "config.toml"), "rb"))
             r0, s0 = warm_steps(first)
             rounds, steps = rounds + r0, steps + s0
             for line in open(os.path.join(root, "stage2_G_student", "train.log")):
                 if line.startswith("imitation done in "):
                     wall_s += float(line.split()[3])
+            note = " (with `stage2_G_student`)"
+        teacher = config.get("warm_start", {}).get("teacher_blob")
+        if config.get("warm_start", {}).get("transplant") and teacher:
+            teacher_dir = os.path.join(root, os.path.basename(teacher).removesuffix(".blob"))
+            if os.path.exists(os.path.join(teacher_dir, "metrics.jsonl")):
+                wall_s += last_wall_s(teacher_dir)[0]
+                note = f" (with its teacher, `{os.path.basename(teacher_dir)}`)"
         run = config["run"]
         critic = config.get("warm_start", {}).get("critic_iterations", 0)
         print(
-            f"| {letter} | {rounds} | {steps / 1e6:.2f} M | {run['iterations']} ({critic}) "
-            f"| {last['samples'] / 1e6:.2f} M | {wall_s / 60:.0f} min |"
+            f"| {letter} (`{name}`) | {rounds} | {steps / 1e6:.2f} M | {run['iterations']} ({critic}) "
+            f"| {samples / 1e6:.2f} M | {wall_s / 60:.0f} min{note} |"
         )
 
 

@@ -499,7 +499,7 @@ fn environment_errors_name_the_field() {
     }
 }
 
-/// The previous stage-2 path (what `sitl race` flew until `stage2_long.toml`):
+/// The previous stage-2 path (what `sitl race` flew until `stage2.toml`):
 /// `configs/stage2_transplant.toml` is, parsed, the run's own `config.toml` beside
 /// `policies/stage2_transplant.blob` (whose provenance `shipped_policies.rs` checks against
 /// it), and it starts from the stage-1 blob that `configs/stage1.toml` makes.
@@ -518,7 +518,7 @@ fn the_transplant_stage2_config_is_the_one_that_made_its_race_ego() {
     assert_eq!(stage1.run.name, "stage1");
 }
 
-/// `configs/stage2_long.toml` (what `sitl race` flies) is `stage2_transplant.toml` with the
+/// `configs/stage2.toml` (what `sitl race` flies) is `stage2_transplant.toml` with the
 /// faster teacher and its own name and seed, and `experiments/race_long.toml` (run long2)
 /// under another name and seed; the teacher is `experiments/stage1_long.toml`'s blob, which is
 /// `stage1.toml` with a larger budget.
@@ -526,7 +526,7 @@ fn the_transplant_stage2_config_is_the_one_that_made_its_race_ego() {
 fn the_long_stage2_recipe_is_the_transplant_recipe_with_the_long_teacher() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
     let load = |p: &str| TrainConfig::load(&root.join(p)).unwrap();
-    let long = load("stage2_long.toml");
+    let long = load("stage2.toml");
     assert_eq!(long.run.seed, 2, "seed 2 of three ships");
     let mut renamed = load("experiments/race_long.toml");
     renamed.run.name = long.run.name.clone();

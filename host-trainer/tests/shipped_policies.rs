@@ -92,7 +92,7 @@ fn the_long_stage1_policy_is_its_config_and_flies_as_recorded() {
     );
 }
 
-/// `policies/stage2_long.blob`, what `sitl race` flies, against `stage1.blob` on the 20
+/// `policies/stage2.blob`, what `sitl race` flies, against `stage1.blob` on the 20
 /// races of seed 0 (its `eval.json`, checked race for race by
 /// `shipped_race_blobs_are_their_configs_best_evaluation_and_race_as_recorded`) and the 100
 /// of seed 2000 (`eval_seed2000.json`): issue "race"'s per-race bars (success >= 0.9,
@@ -101,20 +101,20 @@ fn the_long_stage1_policy_is_its_config_and_flies_as_recorded() {
 /// (docs/RESULTS.md), and nothing here claims more.
 #[test]
 fn the_race_ego_meets_the_race_bars_on_both_seeds() {
-    let raw = std::fs::read(root().join("policies/stage2_long.blob")).unwrap();
+    let raw = std::fs::read(root().join("policies/stage2.blob")).unwrap();
     // The blob races as each report records (gates, crashes, overtakes, win rate, the
     // overtakes by gate), so the bars below are the blob's: `eval.json` is re-raced by
     // `shipped_race_blobs_are_their_configs_best_evaluation_and_race_as_recorded`, the 100
     // races of seed 2000 here.
     races_as_recorded_in(
-        "stage2_long",
+        "stage2",
         &raw,
         "policies/stage1.blob",
-        "policies/stage2_long/eval_seed2000.json",
+        "policies/stage2/eval_seed2000.json",
     );
     for (file, seed, races) in [("eval.json", 0, 20), ("eval_seed2000.json", 2000, 100)] {
         let r: serde_json::Value = serde_json::from_str(
-            &std::fs::read_to_string(root().join("policies/stage2_long").join(file)).unwrap(),
+            &std::fs::read_to_string(root().join("policies/stage2").join(file)).unwrap(),
         )
         .unwrap();
         assert_eq!(
@@ -332,28 +332,30 @@ fn check(name: &str, config: &str, recorded_lap_s: f64) {
     );
 }
 
-/// The stage-2 blobs: `policies/stage2.blob` (row G) and the ablations that are shipped,
-/// each with the config that made it and its directory (`metrics.jsonl`, `eval.json`).
+/// The stage-2 blobs: `policies/stage2.blob` (row G by PPO, what `sitl race` flies),
+/// `stage2_G.blob` (row G by imitation) and the ablations that are shipped, each with the
+/// config that made it (blob name, config name).
 const SHIPPED_RACES: &[(&str, &str)] = &[
-    ("stage2", "stage2_G"),
+    ("stage2", "stage2"),
+    ("stage2_G", "stage2_G"),
     ("stage2_B", "stage2_B"),
     ("stage2_C", "stage2_C"),
     ("stage2_D", "stage2_D"),
     ("stage2_E", "stage2_E"),
     ("stage2_F", "stage2_F"),
     ("stage2_transplant", "stage2_transplant"),
-    ("stage2_long", "stage2_long"),
 ];
 
 /// Every shipped stage-2 blob is its config's run (hash, seed, name, preset), its actor is
 /// the evaluation `run.keep_best` chose from the shipped metrics (the provenance's iteration
 /// is the one the referee scored best there), and it races the shipped opponent exactly as
 /// its `eval.json` records; where the warm start kept its best round, the run's first
-/// evaluation is that round's score. `policies/stage2.blob` must exist; an ablation not yet
-/// trained is skipped.
+/// evaluation is that round's score. `policies/stage2.blob` and `stage2_G.blob` must exist;
+/// an ablation not yet trained is skipped.
 #[test]
 fn shipped_race_blobs_are_their_configs_best_evaluation_and_race_as_recorded() {
     assert!(root().join("policies/stage2.blob").is_file());
+    assert!(root().join("policies/stage2_G.blob").is_file());
     for &(name, config_name) in SHIPPED_RACES {
         let path = root().join(format!("policies/{name}.blob"));
         if path.is_file() {
@@ -429,7 +431,7 @@ fn check_race(name: &str, config_name: &str) {
 /// `policies/stage2_G_student.blob` is the first warm-start stage of row G, made by the
 /// config in its directory (provenance: that config's hash, seed and name, 0 PPO
 /// iterations), and races the shipped opponent exactly as its `eval.json` records.
-/// `configs/stage2_G.toml` refines it into `policies/stage2.blob`.
+/// `configs/stage2_G.toml` refines it into `policies/stage2_G.blob`.
 #[test]
 fn the_stage2_student_is_its_configs_warm_start_and_races_as_recorded() {
     let (raw, _, iterations) =

@@ -7,9 +7,9 @@ use std::path::PathBuf;
 /// `sitl race`'s ego, the first of these in `policies/` that exists: the stage-2 (race)
 /// policies in order of preference, then stage-1 ones.
 pub const RACE_EGOS: [&str; 6] = [
-    "stage2_long.blob",
-    "stage2_transplant.blob",
     "stage2.blob",
+    "stage2_transplant.blob",
+    "stage2_G.blob",
     "stage1.blob",
     "stage1_guarded.blob",
     "stage1_imitation.blob",

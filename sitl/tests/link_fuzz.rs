@@ -722,8 +722,8 @@ fn key() -> [u8; 32] {
 fn stage2() -> &'static PilotSpec {
     static PILOT: OnceLock<PilotSpec> = OnceLock::new();
     PILOT.get_or_init(|| {
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../policies/stage2.blob");
-        PilotSpec::load(path, &Preset::paper()).expect("stage2.blob loads")
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../policies/stage2_G.blob");
+        PilotSpec::load(path, &Preset::paper()).expect("stage2_G.blob loads")
     })
 }
 

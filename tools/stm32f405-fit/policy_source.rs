@@ -33,9 +33,9 @@ pub const STAGE2: ImagePolicy = ImagePolicy {
     role: "stage 2",
     row: TableRow::G,
     candidates: &[
-        "policies/stage2_long.blob",
-        "policies/stage2_transplant.blob",
         "policies/stage2.blob",
+        "policies/stage2_transplant.blob",
+        "policies/stage2_G.blob",
     ],
 };
 

@@ -308,7 +308,7 @@ def test_race_events():
         ({"task": "race"}, ValueError, "needs an opponent"),
         ({"task": "race", "opponent": str(OPPONENT), "competition": "x"}, ValueError, "competition 'x'"),
         ({"task": "race", "opponent": "/nonexistent.blob"}, FileNotFoundError, "/nonexistent.blob"),
-        ({"task": "race", "opponent": str(POLICIES / "stage2.blob")}, ValueError, "observes an opponent"),
+        ({"task": "race", "opponent": str(POLICIES / "stage2_G.blob")}, ValueError, "observes an opponent"),
         ({"randomize": "mass=-1"}, ValueError, "randomize: mass: must lie in"),
         ({"randomize": "gravity=2"}, ValueError, "unknown perturbation 'gravity'"),
     ],
@@ -472,7 +472,7 @@ def test_the_envs_a_policy_expects():
     built.check_policy(overtake.Policy(POLICIES / "stage1_imitation.blob"))
     with pytest.raises(ValueError, match="contradicts the policy"):
         overtake.make_vec_env(num_envs=2, fold_mirror=False, policy=stage1)
-    race = make("race", num_envs=2, policy=POLICIES / "stage2.blob")
-    race.check_policy(overtake.Policy(POLICIES / "stage2.blob"))
+    race = make("race", num_envs=2, policy=POLICIES / "stage2_G.blob")
+    race.check_policy(overtake.Policy(POLICIES / "stage2_G.blob"))
     with pytest.raises(ValueError, match="layout"):
         race.check_policy(stage1)

@@ -9,7 +9,7 @@ import overtake
 
 POLICIES = Path(__file__).resolve().parents[3] / "policies"
 ROW_A = POLICIES / "stage1_guarded.blob"
-ROW_G = POLICIES / "stage2.blob"
+ROW_G = POLICIES / "stage2_G.blob"
 
 
 def test_row_a_flies_the_time_trial():

@@ -11,7 +11,7 @@ use std::process::ExitCode;
 #[derive(Args)]
 #[command(mut_arg("ego", |a| a.help(
     "The ego: a blob or baseline[:CRUISE_MPS[:OFFSET_M]]. Default: the shipped ego (the \
-     first of policies/stage2_long.blob, stage2_transplant.blob, stage2.blob, stage1.blob, \
+     first of policies/stage2.blob, stage2_transplant.blob, stage2_G.blob, stage1.blob, \
      stage1_guarded.blob, stage1_imitation.blob, else the baseline)"
 )))]
 #[command(mut_arg("opponent", |a| a.help(
