@@ -16,7 +16,8 @@ mod presets;
 mod validate;
 
 /// A whole training run. Its TOML sections are `[run]`, `[env]`, `[ppo]`, `[reward]`,
-/// `[pass_decay]`, `[warm_start]`, `[guard]` and `[race]`; the environment's three
+/// `[pass_decay]`, `[warm_start]`, `[guard]`, `[race]` and `[[opponent_curriculum]]`; the
+/// environment's three
 /// (`[env]`, `[reward]`, `[race]`) all land in [`TrainConfig::env`], sitl's one environment
 /// schema.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -37,6 +38,23 @@ pub struct TrainConfig {
     pub warm_start: Option<WarmStart>,
     /// Optional test of every actor update on the measured return (not in the paper).
     pub guard: Option<Guard>,
+    /// Races only: the opponents raced before `[race].opponent`, in order, each until its
+    /// iteration (not in the paper; its authors' proposal against data saturated with
+    /// trailing). Empty: `[race].opponent` from the first iteration.
+    pub opponent_curriculum: Vec<CurriculumStage>,
+}
+
+/// One stage of an opponent curriculum (`[[opponent_curriculum]]`): the training races fly
+/// against `opponent` until `until_iteration`. The in-training referee always races
+/// `[race].opponent`, the opponent the result is judged against.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CurriculumStage {
+    /// The opponent's blob: a time-trial (17-value) policy, as `[race].opponent`.
+    pub opponent: std::path::PathBuf,
+    /// The first iteration that no longer races it (iterations count from 0): the stages'
+    /// iterations rise, and the last is below `run.iterations`.
+    pub until_iteration: u32,
 }
 
 /// The TOML file's layout of a [`TrainConfig`]: the sections in the order of the canonical
@@ -57,6 +75,8 @@ struct TrainFile {
     guard: Option<Guard>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     race: Option<RaceConfig>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    opponent_curriculum: Vec<CurriculumStage>,
 }
 
 impl From<TrainFile> for TrainConfig {
@@ -72,6 +92,7 @@ impl From<TrainFile> for TrainConfig {
             pass_decay: f.pass_decay,
             warm_start: f.warm_start,
             guard: f.guard,
+            opponent_curriculum: f.opponent_curriculum,
         };
         config.env = config.env_config(config.run.seed);
         config
@@ -89,6 +110,7 @@ impl From<TrainConfig> for TrainFile {
             pass_decay: c.pass_decay,
             warm_start: c.warm_start,
             guard: c.guard,
+            opponent_curriculum: c.opponent_curriculum,
         }
     }
 }
@@ -589,6 +611,22 @@ impl TrainConfig {
             ),
             ..self.env.reward
         }
+    }
+
+    /// The race the training envs fly at `iteration`: `[race]` with the opponent of the
+    /// `[[opponent_curriculum]]` stage that iteration falls in, or `[race]` itself past the
+    /// curriculum (and `None` in a time trial).
+    pub fn race_at(&self, iteration: u32) -> Option<RaceConfig> {
+        let race = self.env.race.as_ref()?;
+        let opponent = self
+            .opponent_curriculum
+            .iter()
+            .find(|s| iteration < s.until_iteration)
+            .map_or(&race.opponent, |s| &s.opponent);
+        Some(RaceConfig {
+            opponent: opponent.clone(),
+            ..race.clone()
+        })
     }
 
     /// Reads and validates the TOML file at `path`.

@@ -163,6 +163,29 @@ impl RunDir {
             .join(format!("best_iter_{iteration:06}.{ext}"))
     }
 
+    /// Copies `parent`'s `run.keep_best` candidates of iterations up to `up_to` (a fork's
+    /// start) into this run, so that a best evaluation from before the fork, which the forked
+    /// history carries, is exported from here as the parent would have.
+    pub fn adopt_best_candidates(&self, parent: &RunDir, up_to: u32) -> Result<(), TrainError> {
+        let Ok(entries) = std::fs::read_dir(&parent.checkpoints) else {
+            return Ok(());
+        };
+        for entry in entries.filter_map(Result::ok) {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let iteration = name
+                .strip_prefix("best_iter_")
+                .and_then(|rest| rest.split('.').next())
+                .and_then(|digits| digits.parse::<u32>().ok());
+            if name.ends_with(".tmp") || iteration.is_none_or(|i| i > up_to) {
+                continue;
+            }
+            let bytes = std::fs::read(entry.path()).map_err(io(&entry.path()))?;
+            let to = self.checkpoints.join(&name);
+            write_atomically(&to, &bytes).map_err(io(&to))?;
+        }
+        Ok(())
+    }
+
     /// Where `warm_start.keep_best_round` keeps round `round`'s student.
     pub fn warm_start_round_blob(&self, round: u32) -> PathBuf {
         self.checkpoints

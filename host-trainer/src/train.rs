@@ -21,7 +21,7 @@ use crate::run_dir::{LoopSnapshot, RunDir, RunState};
 use crate::warm_start::warm_start;
 use burn::tensor::Device;
 use firmware_core::policy::{Architecture, Policy};
-use sitl::env::{EnvConfig, VecEnv};
+use sitl::env::{EnvConfig, RaceConfig, VecEnv};
 use sitl::files::write_atomically;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -146,11 +146,18 @@ fn start<A: Imitate, C: ValueNet>(
     let arch = config.architecture()?;
     // Refuse a run that cannot fit in memory before anything is allocated.
     crate::memory::check(config, &arch)?;
-    // Refuse an unreadable opponent before any work.
+    // Refuse an unreadable opponent, the curriculum's included, before any work.
     VecEnv::new(EnvConfig {
         num_envs: 1,
         ..config.env_config(0)
     })?;
+    for stage in &config.opponent_curriculum {
+        VecEnv::new(EnvConfig {
+            num_envs: 1,
+            race: config.race_at(stage.until_iteration - 1),
+            ..config.env_config(0)
+        })?;
+    }
     let device = options.device.clone();
     if options.resume {
         return dir.load_checkpoint(config, &arch, &device);
@@ -168,7 +175,9 @@ fn start<A: Imitate, C: ValueNet>(
                 "--fork-from and --init-actor both say where the actor starts; pass one".into(),
             ));
         }
-        let (state, config_hash) = RunDir::new(parent).fork::<A, C>(config, &arch, &device)?;
+        let parent_dir = RunDir::new(parent);
+        let (state, config_hash) = parent_dir.fork::<A, C>(config, &arch, &device)?;
+        dir.adopt_best_candidates(&parent_dir, state.iteration)?;
         let record = ForkedFrom {
             run: parent.display().to_string(),
             iteration: state.iteration,
@@ -269,7 +278,11 @@ impl Loop {
             .run
             .seed
             .wrapping_add(u64::from(state.iteration).wrapping_mul(0x9e37_79b9_7f4a_7c15));
-        let mut env = config.make_env(env_seed)?;
+        // The opponent of the curriculum's stage the loop starts in.
+        let mut env = VecEnv::new(EnvConfig {
+            race: config.race_at(state.iteration),
+            ..config.env_config(env_seed)
+        })?;
         let mut rollout = Rollout::new(env.num_envs(), env.obs_dim());
         let mut episodes = EpisodeLog::new(env.num_envs());
         let arch = config.architecture()?;
@@ -317,6 +330,21 @@ impl Loop {
         })
     }
 
+    /// The next stage of an opponent curriculum from `iteration` on: every env respawned
+    /// against `race`'s opponent, and the recurrent states and the open episodes' returns
+    /// started afresh with them (the same whether the run goes on or resumes here).
+    fn change_opponent(&mut self, race: RaceConfig, iteration: u32) -> Result<(), TrainError> {
+        println!(
+            "iteration {iteration}: the training races fly against {} from now on",
+            race.opponent.display()
+        );
+        self.env.set_race(race)?;
+        self.rollout.memory.clear();
+        self.rollout.critic_h0.clear();
+        self.episodes = EpisodeLog::new(self.env.num_envs());
+        Ok(())
+    }
+
     /// The rollout's world now, for a checkpoint.
     fn snapshot(&self) -> LoopSnapshot {
         let width = self.rollout.memory.first().map_or(0, |m| m.flat_len());
@@ -357,6 +385,14 @@ fn iteration<A: PolicyNet, C: ValueNet>(
         .as_ref()
         .is_none_or(|w| state.iteration >= w.critic_iterations);
     lp.env.set_reward_weights(config.reward_at(state.iteration));
+    if state.iteration > 0 {
+        let race = config.race_at(state.iteration);
+        if race != config.race_at(state.iteration - 1)
+            && let Some(race) = race
+        {
+            lp.change_opponent(race, state.iteration)?;
+        }
+    }
     // Rollout with the deployed network.
     let payload = state.learner.actor.payload();
     let std = state.learner.actor.std();

@@ -3,6 +3,7 @@
 
 use host_trainer::config::{ConfigError, TrainConfig};
 use sitl::env::RewardWeights;
+use std::path::Path;
 
 const STAGE1: &str = include_str!("../configs/stage1.toml");
 const FINETUNE: &str = include_str!("../configs/experiments/stage1_finetune.toml");
@@ -547,4 +548,58 @@ fn the_long_stage2_recipe_is_the_transplant_recipe_with_the_long_teacher() {
     stage1_long.run.iterations = stage1.run.iterations;
     stage1_long.run.name = stage1.run.name.clone();
     assert_eq!(stage1_long, stage1);
+}
+
+/// `experiments/race_curriculum.toml` is the shipped race recipe at the same budget with one
+/// `[[opponent_curriculum]]` stage; `race_at` gives each iteration's opponent, the key is
+/// hashed, and a curriculum outside a race, out of order, past the budget or beside a
+/// `[guard]` is refused by name.
+#[test]
+fn an_opponent_curriculum_is_the_shipped_recipe_with_an_earlier_opponent() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
+    let text = std::fs::read_to_string(root.join("experiments/race_curriculum.toml")).unwrap();
+    let curriculum = TrainConfig::parse(&text).unwrap();
+    let shipped = TrainConfig::load(&root.join("stage2.toml")).unwrap();
+    let opponent = |c: &TrainConfig, i| c.race_at(i).unwrap().opponent;
+    assert_eq!(
+        opponent(&curriculum, 0),
+        Path::new("policies/stage1_robust.blob")
+    );
+    assert_eq!(
+        opponent(&curriculum, 99),
+        Path::new("policies/stage1_robust.blob")
+    );
+    assert_eq!(
+        opponent(&curriculum, 100),
+        Path::new("policies/stage1.blob")
+    );
+    assert_eq!(opponent(&shipped, 0), Path::new("policies/stage1.blob"));
+    assert_eq!(
+        curriculum.race_at(100),
+        shipped.race_at(0),
+        "only the opponent changes"
+    );
+    let mut same = curriculum.clone();
+    same.opponent_curriculum.clear();
+    same.run.name = shipped.run.name.clone();
+    assert_eq!(same, shipped);
+    assert_ne!(curriculum.hash(), same.hash());
+
+    let refused = |t: &str| TrainConfig::parse(t).unwrap_err().to_string();
+    let e = refused(&text.replace("until_iteration = 100", "until_iteration = 200"));
+    assert!(e.contains("opponent_curriculum[0].until_iteration"), "{e}");
+    let two = format!(
+        "{text}\n[[opponent_curriculum]]\nopponent = \"policies/stage1_guarded.blob\"\nuntil_iteration = 50\n"
+    );
+    let e = refused(&two);
+    assert!(e.contains("opponent_curriculum[1].until_iteration"), "{e}");
+    let e = refused(&format!(
+        "{text}\n[guard]\nenvs = 8\nwarmup_steps = 10\nsteps = 10\n"
+    ));
+    assert!(e.contains("[guard]"), "{e}");
+    let stage = &text[text.find("[[opponent_curriculum]]").unwrap()..];
+    let e = refused(&format!("{STAGE1}\n{stage}"));
+    assert!(e.contains("time trial"), "{e}");
+    let e = refused(&text.replace("until_iteration", "until"));
+    assert!(e.contains("until"), "{e}");
 }

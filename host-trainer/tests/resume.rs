@@ -624,3 +624,103 @@ fn another_seed_from_the_command_line_is_recorded_and_resumes() {
         "seed 5 trains another run than the config's own seed"
     );
 }
+
+/// A tiny row-G race (4 iterations of 16 envs × 20 steps, checkpoints every 2) against
+/// `opponent`.
+fn tiny_race(opponent: &str) -> TrainConfig {
+    let mut race = TrainConfig::parse(include_str!("../configs/smoke_race.toml")).unwrap();
+    race.run.row = 'G';
+    race.run.iterations = 4;
+    race.run.checkpoint_every = 2;
+    race.run.eval_every = 4;
+    race.run.eval_races = 1;
+    race.env.num_envs = 16;
+    race.ppo.steps_per_env = 20;
+    if let Some(r) = &mut race.env.race {
+        r.opponent = Path::new(env!("CARGO_MANIFEST_DIR")).join(opponent);
+    }
+    race
+}
+
+/// `[[opponent_curriculum]]`: until its iteration the training races fly against the
+/// stage's opponent (the first iterations' record is that of a run racing it throughout),
+/// then against `[race].opponent` (the record parts from that run's); a run stopped at the
+/// change and resumed is the uninterrupted one bit for bit.
+#[test]
+fn an_opponent_curriculum_changes_the_opponent_at_its_iteration_and_resumes_bit_for_bit() {
+    let stage1 = Path::new(env!("CARGO_MANIFEST_DIR")).join("../policies/stage1.blob");
+    let mut curriculum = tiny_race("../policies/stage1_guarded.blob");
+    curriculum.opponent_curriculum = vec![host_trainer::config::CurriculumStage {
+        opponent: stage1,
+        until_iteration: 2,
+    }];
+    TrainConfig::parse(&toml::to_string(&curriculum).unwrap()).unwrap();
+    let first_opponent = tiny_race("../policies/stage1.blob");
+    let whole = tmp("curriculum-whole");
+    run(&curriculum, &options(&whole, false, None)).unwrap();
+    let longer = tmp("curriculum-longer");
+    run(&first_opponent, &options(&longer, false, None)).unwrap();
+    let (a, b) = (learning_record(&whole), learning_record(&longer));
+    assert_eq!(a[..2], b[..2], "the first stage races stage1.blob in both");
+    assert_ne!(a[2], b[2], "the third iteration races stage1_guarded.blob");
+
+    let stopped = tmp("curriculum-stopped");
+    run(&curriculum, &options(&stopped, false, Some(2))).unwrap();
+    run(&curriculum, &options(&stopped, true, None)).unwrap();
+    let device = Device::flex().autodiff();
+    let nets = |d: &Path| checkpoint_blob(&curriculum, d, &device).unwrap().1;
+    assert!(nets(&whole) == nets(&stopped), "the networks differ");
+    assert_eq!(learning_record(&whole), learning_record(&stopped));
+    for d in [whole, longer, stopped] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}
+
+/// A fork of a `run.keep_best` run whose best evaluation comes before the fork exports that
+/// actor: the parent's candidate is carried into the fork's directory.
+#[test]
+fn a_fork_exports_a_best_actor_from_before_the_fork() {
+    // The shipped stage-1 policy, fine-tuned at a tiny budget: it flies the referee's
+    // episode perfectly from the first evaluation, so no later one can be strictly better and
+    // a tie goes to the earlier iteration.
+    let mut config = TrainConfig::parse(include_str!("../configs/stage1.toml")).unwrap();
+    config.run.iterations = 4;
+    config.run.checkpoint_every = 2;
+    config.run.keep_best = true;
+    config.run.select = None;
+    config.run.eval_every = 1;
+    config.env.num_envs = 64;
+    config.ppo.steps_per_env = 24;
+    let mut short = config.clone();
+    short.run.iterations = 2;
+    let parent = tmp("fork_best_parent");
+    let init = RunOptions {
+        init_actor: Some(format!("{}/../policies/stage1.blob", env!("CARGO_MANIFEST_DIR")).into()),
+        ..options(&parent, false, None)
+    };
+    let s = run(&short, &init).unwrap();
+    assert_eq!(s.best.unwrap().eval_success_rate, Some(1.0));
+    // The fork evaluates only its last iteration.
+    config.run.eval_every = 4;
+    let child = tmp("fork_best_child");
+    let s = run(
+        &config,
+        &RunOptions {
+            fork_from: Some(parent.clone()),
+            ..options(&child, false, None)
+        },
+    )
+    .unwrap();
+    let best = s.best.expect("keep_best has a best").iteration;
+    assert!(
+        best <= 2,
+        "the setup needs the parent's evaluation to stay the best, got iteration {best}"
+    );
+    let exported = std::fs::read(s.blob.unwrap()).unwrap();
+    let parents =
+        std::fs::read(parent.join(format!("checkpoints/best_iter_{best:06}.blob"))).unwrap();
+    assert!(exported == parents);
+    for d in [parent, child] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}

@@ -1017,3 +1017,72 @@ fn ego_ahead_spawns_swap_the_places() {
     let e = e.to_string();
     assert!(e.contains("race.ego_ahead_fraction"), "{e}");
 }
+
+/// `set_race` (an opponent curriculum's change of opponent) gives the env that raced the new
+/// opponent from the start, respawned at the same moment: step for step the same
+/// observations (which carry the opponent's state) and rewards. A refused blob and a time
+/// trial leave the env as it was.
+#[test]
+fn a_changed_opponent_races_as_one_raced_from_the_start() {
+    let time_trial_config = config;
+    let stage1 = concat!(env!("CARGO_MANIFEST_DIR"), "/../policies/stage1.blob");
+    let n = 8;
+    let config = |opponent: &str| EnvConfig {
+        seed: 21,
+        ..EnvConfig::stage2(n, opponent)
+    };
+    let mut changed = VecEnv::new(config(OPPONENT)).unwrap();
+    let mut from_start = VecEnv::new(config(stage1)).unwrap();
+    let hover = ActionMap::PAPER.action_for_rpm(Preset::paper().hover_rpm());
+    let actions = |t: usize| -> Vec<f32> {
+        (0..n)
+            .flat_map(|s| [hover + 0.2 * ((s * 5 + t) as f32 * 0.3).sin(); 4])
+            .collect()
+    };
+    // Before the change the two opponents differ where they fly.
+    for t in 0..50 {
+        changed.step(&actions(t)).unwrap();
+        from_start.step(&actions(t)).unwrap();
+    }
+    assert_ne!(changed.observations(), from_start.observations());
+
+    // A corrupt blob is refused and the env keeps its opponent and its state.
+    let mut raw = std::fs::read(stage1).unwrap();
+    let last = raw.len() - 1;
+    raw[last] ^= 0x40;
+    let mut refused = changed.clone();
+    let race = |opponent: std::path::PathBuf| RaceConfig {
+        opponent,
+        ..config(stage1).race.unwrap()
+    };
+    let e = refused
+        .set_race(race(blob_file("curriculum-corrupt.blob", &raw)))
+        .unwrap_err();
+    assert!(e.to_string().contains("opponent"), "{e}");
+    assert_eq!(refused.observations(), changed.observations());
+    let mut twin = changed.clone();
+    for t in 0..30 {
+        refused.step(&actions(t)).unwrap();
+        twin.step(&actions(t)).unwrap();
+        assert_eq!(refused.observations(), twin.observations(), "step {t}");
+    }
+
+    changed.set_race(race(stage1.into())).unwrap();
+    from_start.respawn_all();
+    assert_eq!(changed.observations(), from_start.observations());
+    for t in 0..300 {
+        changed.step(&actions(t)).unwrap();
+        from_start.step(&actions(t)).unwrap();
+        assert_eq!(
+            changed.observations(),
+            from_start.observations(),
+            "step {t}"
+        );
+        assert_eq!(changed.rewards(), from_start.rewards(), "step {t}");
+        assert_eq!(changed.dones(), from_start.dones(), "step {t}");
+    }
+
+    let mut trial = VecEnv::time_trial(time_trial_config(n));
+    let e = trial.set_race(race(stage1.into())).unwrap_err();
+    assert!(e.to_string().contains("time-trial"), "{e}");
+}

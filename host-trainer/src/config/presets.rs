@@ -34,6 +34,7 @@ impl TrainConfig {
             warm_start: None,
             pass_decay: None,
             guard: None,
+            opponent_curriculum: Vec::new(),
         }
         .with_env_derived()
     }
@@ -88,6 +89,7 @@ impl TrainConfig {
                 to_iteration: 2000,
             }),
             guard: None,
+            opponent_curriculum: Vec::new(),
         }
         .with_env_derived()
     }

@@ -12,6 +12,7 @@ fn bad(m: impl Into<String>) -> Result<(), ConfigError> {
 pub(super) fn validate(c: &TrainConfig) -> Result<(), ConfigError> {
     run(c)?;
     env_and_race(c)?;
+    opponent_curriculum(c)?;
     warm_start(c)?;
     if let Some(g) = &c.guard {
         if g.envs == 0 || g.steps == 0 {
@@ -81,6 +82,33 @@ fn run(c: &TrainConfig) -> Result<(), ConfigError> {
                 "run.select.from_iteration is past run.iterations: nothing would be a candidate",
             );
         }
+    }
+    Ok(())
+}
+
+/// The stages of `[[opponent_curriculum]]`: a race's, their iterations rising and within the
+/// run (each opponent's blob is read when the run starts).
+fn opponent_curriculum(c: &TrainConfig) -> Result<(), ConfigError> {
+    if c.opponent_curriculum.is_empty() {
+        return Ok(());
+    }
+    if c.env.race.is_none() {
+        return bad("[[opponent_curriculum]] changes a race's opponent; a time trial has none");
+    }
+    if c.guard.is_some() {
+        return bad(
+            "[[opponent_curriculum]] with [guard]: the guard measures returns against [race].opponent only; use one or the other",
+        );
+    }
+    let mut from = 0;
+    for (i, s) in c.opponent_curriculum.iter().enumerate() {
+        if s.until_iteration <= from || s.until_iteration >= c.run.iterations {
+            return bad(format!(
+                "opponent_curriculum[{i}].until_iteration {} must be above {from} (the stage before it ends there) and below run.iterations {} (so [race].opponent is raced at the end)",
+                s.until_iteration, c.run.iterations
+            ));
+        }
+        from = s.until_iteration;
     }
     Ok(())
 }

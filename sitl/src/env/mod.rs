@@ -496,6 +496,27 @@ impl VecEnv {
         self.observe_all();
     }
 
+    /// Races `race` from now on (an opponent curriculum changes the opponent during a run):
+    /// its opponent's blob read and validated as [`VecEnv::new`] does, every slot given a
+    /// fresh copy of its controller, and every env respawned ([`VecEnv::respawn_all`]), so no
+    /// race goes on with a changed opponent. A time-trial env, or a blob that is refused,
+    /// leaves the env as it was.
+    pub fn set_race(&mut self, race: RaceConfig) -> Result<(), EnvError> {
+        if self.race.is_none() {
+            return Err(EnvError::Unflyable(
+                "a time-trial environment has no opponent to change".into(),
+            ));
+        }
+        let loaded = Race::load(&race)?;
+        for slot in &mut self.slots {
+            slot.opponent = Some(loaded.opponent.clone());
+        }
+        self.race = Some(loaded);
+        self.config.race = Some(race);
+        self.respawn_all();
+        Ok(())
+    }
+
     /// The observation of every env's current state reflected in the track's mirror plane
     /// ([`crate::mirror`]), `num_envs × obs_dim`, row-major, into `out` (cleared first): the
     /// reflected drones (and opponents) observed by the same pipeline, targeting the
