@@ -59,8 +59,9 @@ pub enum Command {
     ///
     /// Reads each run's `metrics.jsonl` (of `host-trainer train` or tools/train_rslrl.py):
     /// referee success and best lap (s), rollout gates and crashes per second and the
-    /// policy's σ, against env-steps and wall-clock (s), beside the authors' run (no gate in
-    /// 410 M env-steps).
+    /// policy's σ, and for races the referee's overtakes (all and sustained) and win rate,
+    /// against env-steps and wall-clock (min), beside the authors' run (no gate in 410 M
+    /// env-steps).
     LearningCurves(curves::CurvesArgs),
     /// Run the Cortex-M4 images of tools/cortex-m-tests under QEMU (docs/cortex-m.md).
     #[command(subcommand)]
