@@ -1,7 +1,8 @@
 //! The training environment's step rate: 4,096 stage-1 envs (dynamics, gate test, crash
 //! rules, rewards with their terms, respawns, observations), rayon over the cores; and
-//! 4,096 stage-2 envs, each with its opponent (`policies/stage1.blob`, flown by
-//! firmware-core's controller, 16 envs side by side) stepped in the env.
+//! 4,096 stage-2 envs, each with its opponent (`policies/stage1.blob`): replaying its
+//! recorded flights (`race_4096`, the env's default), and flown live by firmware-core's
+//! controller, 16 envs side by side (`race_4096_live`), in the same run.
 //!
 //! `cargo bench -p sitl --bench env_step`
 
@@ -21,6 +22,9 @@ fn bench(c: &mut Criterion) {
     let opponent = concat!(env!("CARGO_MANIFEST_DIR"), "/../policies/stage1.blob");
     let mut race = VecEnv::new(EnvConfig::stage2(n, opponent)).expect("the shipped opponent");
     g.bench_function("race_4096", |b| b.iter(|| race.step(&actions)));
+    let mut live = VecEnv::new(EnvConfig::stage2(n, opponent)).expect("the shipped opponent");
+    live.fly_opponents_live();
+    g.bench_function("race_4096_live", |b| b.iter(|| live.step(&actions)));
     g.finish();
 }
 

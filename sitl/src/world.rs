@@ -217,22 +217,7 @@ impl World {
     ) -> [DroneStep; N] {
         let mut out = [DroneStep::default(); N];
         for ((d, o), &a) in drones.iter_mut().zip(out.iter_mut()).zip(from) {
-            let b = d.body.state.position_m;
-            if !d.body.state.is_finite() {
-                o.crash = Some(CrashCause::NonFinite);
-                continue;
-            }
-            o.gate_event = d.progress.advance(&self.track, a, b);
-            let target = self.track.gate(d.progress.target).center_m;
-            o.crash = if let GateEvent::Collided { gate, .. } = o.gate_event {
-                Some(CrashCause::GateFrame { gate })
-            } else if self.rules.below_ground(b) {
-                Some(CrashCause::Ground)
-            } else if self.rules.out_of_bounds(target, b) {
-                Some(CrashCause::OutOfBounds)
-            } else {
-                None
-            };
+            *o = self.judge_own(d, a);
         }
         for i in 0..N {
             for j in i + 1..N {
@@ -242,9 +227,7 @@ impl World {
                 let (Some(&fi), Some(&fj)) = (from.get(i), from.get(j)) else {
                     continue;
                 };
-                let start = fi - fj;
-                let end = di.position_m() - dj.position_m();
-                if closest_approach_m(start, end) < self.rules.min_separation_m {
+                if self.collided([fi, fj], [di.position_m(), dj.position_m()]) {
                     for (me, other) in [(i, j), (j, i)] {
                         if let Some(o) = out.get_mut(me) {
                             o.crash.get_or_insert(CrashCause::Collision { other });
@@ -254,6 +237,59 @@ impl World {
             }
         }
         out
+    }
+
+    /// One step of `ego` (index 0) beside drone 1, whose own step is already known: it moved
+    /// from `other_from` to `other` and its own rules gave `other_step` (a flight recorded
+    /// alone, as the race env replays its opponent's). The ego is stepped and judged, and the
+    /// pair's closest approach tested, exactly as [`World::step_airframes`] does for the two.
+    pub fn step_beside(
+        &self,
+        ego: &mut Drone,
+        command: &MotorCommand,
+        airframe: &Preset,
+        other_from: Vec3,
+        other: &Drone,
+        other_step: DroneStep,
+    ) -> [DroneStep; 2] {
+        let from = ego.position_m();
+        ego.body.step(airframe, command, self.dt_s);
+        let mut out = [self.judge_own(ego, from), other_step];
+        if self.collided([from, other_from], [ego.position_m(), other.position_m()]) {
+            for (o, other) in out.iter_mut().zip([1, 0]) {
+                o.crash.get_or_insert(CrashCause::Collision { other });
+            }
+        }
+        out
+    }
+
+    /// One drone's own rules for its step from `a` (m) to its current position.
+    fn judge_own(&self, d: &mut Drone, a: Vec3) -> DroneStep {
+        let b = d.body.state.position_m;
+        if !d.body.state.is_finite() {
+            return DroneStep {
+                crash: Some(CrashCause::NonFinite),
+                ..DroneStep::default()
+            };
+        }
+        let gate_event = d.progress.advance(&self.track, a, b);
+        let target = self.track.gate(d.progress.target).center_m;
+        let crash = if let GateEvent::Collided { gate, .. } = gate_event {
+            Some(CrashCause::GateFrame { gate })
+        } else if self.rules.below_ground(b) {
+            Some(CrashCause::Ground)
+        } else if self.rules.out_of_bounds(target, b) {
+            Some(CrashCause::OutOfBounds)
+        } else {
+            None
+        };
+        DroneStep { gate_event, crash }
+    }
+
+    /// Whether two drones moving in straight lines from `from` to `to` (m) come closer than
+    /// the rules' separation during the step.
+    fn collided(&self, from: [Vec3; 2], to: [Vec3; 2]) -> bool {
+        closest_approach_m(from[0] - from[1], to[0] - to[1]) < self.rules.min_separation_m
     }
 
     /// Steps many independent worlds in parallel (rayon): world `i` flies `commands[i]` and

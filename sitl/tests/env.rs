@@ -1086,3 +1086,82 @@ fn a_changed_opponent_races_as_one_raced_from_the_start() {
     let e = trial.set_race(race(stage1.into())).unwrap_err();
     assert!(e.to_string().contains("time-trial"), "{e}");
 }
+
+/// The opponent's recorded flights replay its live flight bit for bit: a race whose
+/// opponents fly live from the start and one that replays them give the same observations,
+/// rewards, ends and records at every step, through crashes, collisions, the opponent's own
+/// crashes, swapped places, a partial group of envs, a switch to live flight in the middle
+/// of replays, a snapshot restored in the middle of replays, and episodes made longer than
+/// the recordings from outside.
+#[test]
+fn replayed_opponents_fly_as_live_ones() {
+    let stage1 = OPPONENT;
+    let n = 40;
+    let config = EnvConfig {
+        random_initial_episode_length: true,
+        seed: 9,
+        race: Some(RaceConfig {
+            ego_ahead_fraction: 0.3,
+            ..EnvConfig::stage2(n, stage1).race.unwrap()
+        }),
+        ..EnvConfig::stage2(n, stage1)
+    };
+    let mut live = VecEnv::new(config.clone()).unwrap();
+    live.fly_opponents_live();
+    let mut replayed = VecEnv::new(config).unwrap();
+    // Half the egos hover with a small wobble (long episodes: the opponent flies whole
+    // recorded laps and meets them again), half wobble hard (short ones).
+    let hover = ActionMap::PAPER.action_for_rpm(Preset::paper().hover_rpm());
+    let action = |slot: usize, t: usize| -> [f32; 4] {
+        let amplitude = if slot.is_multiple_of(2) { 0.02 } else { 0.35 };
+        core::array::from_fn(|k| {
+            hover + amplitude * ((slot * 7 + t * 3 + k * 5) as f32 * 0.37).sin()
+        })
+    };
+    let (mut collisions, mut opponent_crashes, mut ends) = (0, 0, 0);
+    for t in 0..2400 {
+        let a: Vec<f32> = (0..n).flat_map(|s| action(s, t)).collect();
+        live.step(&a).unwrap();
+        replayed.step(&a).unwrap();
+        assert_eq!(live.observations(), replayed.observations(), "step {t}");
+        assert_eq!(live.rewards(), replayed.rewards(), "step {t}");
+        assert_eq!(live.dones(), replayed.dones(), "step {t}");
+        assert_eq!(live.records(), replayed.records(), "step {t}");
+        ends += live.dones().iter().filter(|d| **d).count();
+        opponent_crashes += live.records().iter().filter(|r| r.opponent_crashed).count();
+        match t {
+            600 => {
+                // A snapshot taken in the middle of replays, restored: flown live from there.
+                let snap = replayed.snapshot();
+                assert_eq!(
+                    snap,
+                    live.snapshot(),
+                    "the snapshot records the replayed state"
+                );
+                replayed.restore(&snap).unwrap();
+            }
+            1200 => {
+                // Episodes made longer than any recording: the controller takes over.
+                let steps = vec![0; n];
+                live.set_episode_steps(&steps).unwrap();
+                replayed.set_episode_steps(&steps).unwrap();
+            }
+            1800 => replayed.fly_opponents_live(),
+            _ => {}
+        }
+        // A crash within 0.3 m of the opponent (the rules' separation is 0.2 m) is a
+        // collision: the 30-value observation holds the opponent's offset / 12 m.
+        collisions += live
+            .records()
+            .iter()
+            .zip(live.final_observations().chunks_exact(30))
+            .filter(|(r, o)| {
+                r.crashed && 12.0 * o[17..20].iter().map(|v| v * v).sum::<f32>().sqrt() < 0.3
+            })
+            .count();
+    }
+    assert!(
+        ends > 100 && opponent_crashes > 0 && collisions > 0,
+        "{ends} ends, {opponent_crashes} opponent crashes, {collisions} collisions"
+    );
+}

@@ -10,7 +10,10 @@
 //! Stage 2 (race, [`EnvConfig::race`]): the ego and an opponent in one world, spawned as the paper's
 //! stage 2 (a random gate k, the opponent 1 m and the ego 2 m before it, at rest). The
 //! opponent is a frozen blob flown by firmware-core's [`Controller`], the code a flight
-//! controller runs, deterministically (its Gaussian mean). An episode ends as a race restarts
+//! controller runs, deterministically (its Gaussian mean). Blind to the ego and spawned at one
+//! of a few places, a feed-forward opponent flies the same flight from each place in every
+//! episode: it is recorded once and replayed, bit for bit the live flight ([`flight`];
+//! [`VecEnv::fly_opponents_live`] flies it live instead). An episode ends as a race restarts
 //! in the referee: on any crash. The ego's crash (a collision included) is a terminal step
 //! with the crash penalty; the opponent crashing alone is a truncation (`timeouts`, so it is
 //! bootstrapped with γ·V): the ego did nothing wrong and its future was cut short.
@@ -36,6 +39,7 @@ use rayon::prelude::*;
 
 mod config;
 mod error;
+mod flight;
 mod observe;
 mod opponent;
 pub mod reward;
@@ -49,6 +53,7 @@ pub use config::{
     Task,
 };
 pub use error::{ActionShapeError, EnvError, EpisodeStepsError};
+use flight::{FlightBook, FlightStep};
 use observe::{ego_observation, observe, observe_drones};
 use opponent::Race;
 pub use opponent::{MAX_BLOB_BYTES, interned, read_blob};
@@ -84,6 +89,9 @@ struct Slot {
     /// The ego's randomised airframe, latency and sensor noise this episode
     /// (`EnvConfig::randomize`).
     perturbed: Option<EpisodePerturbation>,
+    /// Stage 2: the opponent's spawn place and the steps it has flown since, while its
+    /// recorded flight is replayed (`flight`); `None` while its controller flies it live.
+    replay: Option<(usize, u32)>,
 }
 
 /// Many stage-1 or stage-2 worlds with their observations, rewards and episode ends.
@@ -96,6 +104,8 @@ pub struct VecEnv {
     map: ActionMap,
     config: EnvConfig,
     race: Option<Race>,
+    /// Stage 2 with a feed-forward opponent: its recorded flights (`flight`).
+    flights: Option<std::sync::Arc<FlightBook>>,
     max_steps: u32,
     slots: Vec<Slot>,
     observations: Vec<f32>,
@@ -161,12 +171,16 @@ impl VecEnv {
                 )));
             }
         };
+        let flights = race
+            .as_ref()
+            .and_then(|r| flight_book(r, &world, max_steps));
         let mut env = Self {
             world,
             progress,
             spec,
             obs_dim,
             map: ActionMap::PAPER,
+            flights,
             race,
             max_steps,
             slots: Vec::with_capacity(n),
@@ -203,6 +217,7 @@ impl VecEnv {
                 stats: EnvStats::default(),
                 passes: PassReplay::default(),
                 perturbed: None,
+                replay: None,
             };
             respawn(
                 &env.world,
@@ -373,6 +388,7 @@ impl VecEnv {
         let progress = &self.progress;
         let opponent_policy = self.race.as_ref().map(|r| *r.opponent.policy());
         let opponent_policy = opponent_policy.as_ref();
+        let flights = self.flights.as_deref();
         self.slots
             .par_chunks_mut(CHUNK)
             .zip(self.observations.par_chunks_mut(CHUNK * obs_dim))
@@ -384,7 +400,11 @@ impl VecEnv {
             .zip(actions.par_chunks(CHUNK * ACTION_DIM))
             .for_each(
                 |(((((((slots, obs), last), rew), done), timeout), record), act)| {
-                    let opponent_commands = opponent_commands(opponent_policy, slots);
+                    let replayed: Vec<Option<&FlightStep>> = slots
+                        .iter_mut()
+                        .map(|slot| replayed_step(flights, world, slot))
+                        .collect();
+                    let opponent_commands = opponent_commands(opponent_policy, slots, &replayed);
                     for (i, slot) in slots.iter_mut().enumerate() {
                         let raw: [f32; ACTION_DIM] = core::array::from_fn(|k| {
                             act.get(i * ACTION_DIM + k).copied().unwrap_or(0.0)
@@ -402,8 +422,18 @@ impl VecEnv {
                         // A folded observation's action is the image's: renumber it back.
                         let folded = fold.is_some_and(|m| m.folds(slot.drones[0].progress.target));
                         let a = unfold_action(fold, folded, &a);
-                        let opp = opponent_commands.get(i).copied();
+                        let opp =
+                            match (replayed.get(i).copied().flatten(), opponent_commands.get(i)) {
+                                (Some(f), _) => Some(OpponentStep::Replayed(f)),
+                                (None, Some(Some(c))) => Some(OpponentStep::Live(*c)),
+                                (None, _) => None,
+                            };
                         let rec = step_slot(world, progress, map, reward, max_steps, slot, &a, opp);
+                        if let (Some((_, flown)), Some(OpponentStep::Replayed(_))) =
+                            (&mut slot.replay, opp)
+                        {
+                            *flown += 1;
+                        }
                         let ended = rec.crashed || rec.timed_out;
                         if rec.gate_passed && !ended && rule.replay_fraction > 0.0 {
                             slot.passes.record(slot.drones[0], slot.previous_action);
@@ -496,6 +526,22 @@ impl VecEnv {
         self.observe_all();
     }
 
+    /// Flies every opponent live from now on, its controller stepped in every step, instead
+    /// of replaying its recorded flight ([`flight`]): for the tests and benches that compare
+    /// the two. An opponent in the middle of a replay goes on from the recorded state.
+    pub fn fly_opponents_live(&mut self) {
+        let book = self.flights.take();
+        for slot in &mut self.slots {
+            let last = slot.replay.take().and_then(|(key, flown)| {
+                let k = flown.checked_sub(1)?;
+                book.as_deref()?.recorded(key)?.step(k).map(|s| s.memory)
+            });
+            if let (Some(c), Some(memory)) = (slot.opponent.as_mut(), last) {
+                c.restore(&memory, &[]);
+            }
+        }
+    }
+
     /// Races `race` from now on (an opponent curriculum changes the opponent during a run):
     /// its opponent's blob read and validated as [`VecEnv::new`] does, every slot given a
     /// fresh copy of its controller, and every env respawned ([`VecEnv::respawn_all`]), so no
@@ -508,6 +554,7 @@ impl VecEnv {
             ));
         }
         let loaded = Race::load(&race)?;
+        self.flights = flight_book(&loaded, &self.world, self.max_steps);
         for slot in &mut self.slots {
             slot.opponent = Some(loaded.opponent.clone());
         }
@@ -561,17 +608,81 @@ impl VecEnv {
     }
 }
 
-/// The commands of the opponents of `slots` (stage 2; empty in a time trial), from the
-/// states before the step (as the referee's lockstep does): their controllers stepped
-/// [`LANES`] at a time through `policy`, the one all of them fly (clones of the race's
-/// controller), the remainder one by one; bit for bit `Controller::step` either way.
-fn opponent_commands(policy: Option<&Policy<'static>>, slots: &mut [Slot]) -> Vec<MotorCommand> {
+/// The book of the race's recorded opponent flights: one place per gate, and with the
+/// places swapped; `None` for a recurrent opponent (its state is not recorded), which flies
+/// live.
+fn flight_book(race: &Race, world: &World, max_steps: u32) -> Option<std::sync::Arc<FlightBook>> {
+    (race.opponent.policy_state().flat_len() == 0)
+        .then(|| std::sync::Arc::new(FlightBook::new(2 * world.track.len(), max_steps)))
+}
+
+/// The opponent's recorded step for `slot` now, when its flight is being replayed
+/// ([`flight`]); else `None`, and the slot flies its opponent live from here to its next
+/// spawn (its controller given the recorded bookkeeping first, when the flight ran out of
+/// recorded steps).
+fn replayed_step<'b>(
+    flights: Option<&'b FlightBook>,
+    world: &World,
+    slot: &mut Slot,
+) -> Option<&'b FlightStep> {
+    let (key, flown) = slot.replay?;
+    let found = flights.and_then(|book| {
+        let controller = slot.opponent.as_ref()?;
+        let flight = if flown == 0 {
+            book.flight(key, world, &slot.drones[1], controller)?
+        } else {
+            book.recorded(key)?
+        };
+        Some((
+            flight.step(flown),
+            flown.checked_sub(1).and_then(|k| flight.step(k)),
+        ))
+    });
+    match found {
+        Some((Some(step), _)) => Some(step),
+        Some((None, last)) => {
+            // Past the recording: the controller takes over where the flight stopped.
+            if let (Some(c), Some(last)) = (slot.opponent.as_mut(), last) {
+                c.restore(&last.memory, &[]);
+            }
+            slot.replay = None;
+            None
+        }
+        None => {
+            slot.replay = None;
+            None
+        }
+    }
+}
+
+/// The commands of the opponents of `slots` flown live (stage 2; empty in a time trial),
+/// one per slot, `None` where `replayed` holds the opponent's recorded step: from the states
+/// before the step (as the referee's lockstep does), their controllers stepped [`LANES`] at
+/// a time through `policy`, the one all of them fly (clones of the race's controller), where
+/// a whole group flies live, else one by one; bit for bit `Controller::step` either way.
+fn opponent_commands(
+    policy: Option<&Policy<'static>>,
+    slots: &mut [Slot],
+    replayed: &[Option<&FlightStep>],
+) -> Vec<Option<MotorCommand>> {
     let Some(policy) = policy else {
         return Vec::new();
     };
+    if replayed.iter().all(Option::is_some) {
+        return vec![None; slots.len()];
+    }
     let mut commands = Vec::with_capacity(slots.len());
     let mut groups = slots.chunks_exact_mut(LANES);
+    let mut flags = replayed.chunks(LANES);
     for group in &mut groups {
+        let replay = flags.next().unwrap_or(&[]);
+        if replay.iter().any(Option::is_some) {
+            commands.extend(group.iter_mut().zip(replay).map(|(slot, r)| match r {
+                Some(_) => None,
+                None => one_command(slot),
+            }));
+            continue;
+        }
         let mut controllers = Vec::with_capacity(LANES);
         let mut own = Vec::with_capacity(LANES);
         let mut ego = Vec::with_capacity(LANES);
@@ -592,19 +703,35 @@ fn opponent_commands(policy: Option<&Policy<'static>>, slots: &mut [Slot]) -> Ve
             return Vec::new();
         };
         let out = crate::lanes::controller_step_lanes(policy, controllers, own, ego);
-        commands.extend(out.iter().map(|o| o.command));
+        commands.extend(out.iter().map(|o| Some(o.command)));
     }
-    for slot in groups.into_remainder() {
-        let [e, o] = &slot.drones;
-        if let Some(c) = slot.opponent.as_mut() {
-            commands.push(c.step(&o.body.state, Some(&e.body.state)).command);
-        }
+    let rest = replayed.get(commands.len()..).unwrap_or(&[]);
+    for (slot, r) in groups.into_remainder().iter_mut().zip(rest) {
+        commands.push(match r {
+            Some(_) => None,
+            None => one_command(slot),
+        });
     }
     commands
 }
 
-/// Steps one env, the opponent flying `opponent_command` (stage 2; `None` in a time trial:
-/// the ego flies alone); returns what the step
+/// The command of `slot`'s opponent flown live, one env alone.
+fn one_command(slot: &mut Slot) -> Option<MotorCommand> {
+    let [e, o] = &slot.drones;
+    let c = slot.opponent.as_mut()?;
+    Some(c.step(&o.body.state, Some(&e.body.state)).command)
+}
+
+/// What the opponent does in a step of its env: flown live with a command, or its recorded
+/// step replayed ([`flight`]).
+#[derive(Clone, Copy)]
+enum OpponentStep<'a> {
+    Live(MotorCommand),
+    Replayed(&'a FlightStep),
+}
+
+/// Steps one env, the opponent flying or replaying `opponent` (stage 2; `None` in a time
+/// trial: the ego flies alone); returns what the step
 /// was made of.
 #[allow(clippy::too_many_arguments)]
 fn step_slot(
@@ -615,7 +742,7 @@ fn step_slot(
     max_steps: u32,
     slot: &mut Slot,
     action: &[f32; ACTION_DIM],
-    opponent_command: Option<MotorCommand>,
+    opponent: Option<OpponentStep<'_>>,
 ) -> StepRecord {
     let d = &slot.drones[0];
     let gate = world.track.gate(d.progress.target).center_m;
@@ -624,8 +751,15 @@ fn step_slot(
         Some(p) => (p.deliver(map.command(action)), p.ego_preset),
         None => (map.command(action), world.preset),
     };
-    let (result, opponent_crashed) = match opponent_command {
-        Some(opp_command) => {
+    let (result, opponent_crashed) = match opponent {
+        Some(OpponentStep::Replayed(f)) => {
+            let [ego, opponent] = &mut slot.drones;
+            let from = opponent.position_m();
+            let [e, o] = world.step_beside(ego, &command, &airframe, from, &f.drone, f.step);
+            *opponent = f.drone;
+            (e, o.crash.is_some())
+        }
+        Some(OpponentStep::Live(opp_command)) => {
             let [e, o] = world.step_airframes(
                 &mut slot.drones,
                 &[command, opp_command],

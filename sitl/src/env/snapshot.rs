@@ -10,6 +10,7 @@
 //! restored into an env built from the same config, and refused, naming the misfit, where
 //! the env's shape differs.
 
+use super::flight::FlightBook;
 use super::{EnvError, Slot, VecEnv};
 use crate::perturb::EpisodePerturbationSnapshot;
 use crate::world::Drone;
@@ -85,7 +86,11 @@ impl VecEnv {
         EnvSnapshot {
             format: ENV_SNAPSHOT_FORMAT,
             obs_dim: self.obs_dim,
-            slots: self.slots.iter().map(slot_snapshot).collect(),
+            slots: self
+                .slots
+                .iter()
+                .map(|slot| slot_snapshot(slot, self.flights.as_deref()))
+                .collect(),
             observations: self.observations.clone(),
         }
     }
@@ -128,6 +133,8 @@ impl VecEnv {
             slot.perturb_rng = snap.perturb_rng.generator();
             slot.stats = snap.stats;
             slot.passes = snap.passes.clone();
+            // Flown live from the restored state to the next spawn.
+            slot.replay = None;
             match (&mut slot.opponent, &snap.opponent) {
                 (None, None) => {}
                 (Some(c), Some((memory, state))) => {
@@ -149,13 +156,19 @@ impl VecEnv {
     }
 }
 
-fn slot_snapshot(slot: &Slot) -> SlotSnapshot {
+/// `slot`'s state; an opponent whose flight is being replayed (`super::flight`) is recorded
+/// with the controller bookkeeping of its last recorded step, as if it had been flown live.
+fn slot_snapshot(slot: &Slot, flights: Option<&FlightBook>) -> SlotSnapshot {
+    let replayed = slot.replay.and_then(|(key, flown)| {
+        let last = flown.checked_sub(1)?;
+        Some(flights?.recorded(key)?.step(last)?.memory)
+    });
     SlotSnapshot {
         drones: slot.drones,
         opponent: slot.opponent.as_ref().map(|c| {
             let mut state = vec![0.0; c.policy_state().flat_len()];
             c.policy_state().write_flat(&mut state);
-            (c.memory(), state)
+            (replayed.unwrap_or_else(|| c.memory()), state)
         }),
         previous_action: slot.previous_action,
         steps: slot.steps,

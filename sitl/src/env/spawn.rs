@@ -86,6 +86,7 @@ pub(super) fn respawn(
 
 /// Places the drones of a new episode ([`respawn`]); true when the ego's state is a replay.
 fn place(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut Slot) -> bool {
+    slot.replay = None;
     if !rule.race && rule.replay_fraction > 0.0 && slot.rng.random::<f32>() < rule.replay_fraction {
         if let Some((drone, previous_action)) = slot.passes.draw(&mut slot.rng) {
             slot.drones[0] = drone;
@@ -116,6 +117,10 @@ fn place(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut S
         let swap = rule.race
             && rule.ego_ahead_fraction > 0.0
             && slot.rng.random::<f32>() < rule.ego_ahead_fraction;
+        // The opponent's spawn place, the key of its recorded flight (`super::flight`).
+        slot.replay = rule
+            .race
+            .then_some((2 * opponent.target_gate + usize::from(swap), 0));
         if swap {
             [opponent, ego]
         } else {
