@@ -245,8 +245,11 @@ fn race_with_the_shipped_defaults_prints_the_row_and_writes_its_files() {
     let dir = temp("race-default");
     std::fs::create_dir_all(&dir).unwrap();
     let (tlog, plot, json) = (dir.join("r.tlog"), dir.join("r.svg"), dir.join("r.json"));
+    let replay = dir.join("r.html");
     let (ok, out, err) = sitl(&[
         "race",
+        "--replay",
+        replay.to_str().unwrap(),
         "--episodes",
         "2",
         "--seconds",
@@ -270,6 +273,7 @@ fn race_with_the_shipped_defaults_prints_the_row_and_writes_its_files() {
     );
     assert!(std::fs::metadata(&tlog).unwrap().len() > 0);
     assert!(std::fs::read_to_string(&plot).unwrap().starts_with("<svg"));
+    assert!(std::fs::metadata(&replay).unwrap().len() > 0);
     let j: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
     for key in [
