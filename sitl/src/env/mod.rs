@@ -12,7 +12,7 @@
 //! opponent is a frozen blob flown by firmware-core's [`Controller`], the code a flight
 //! controller runs, deterministically (its Gaussian mean). Blind to the ego and spawned at one
 //! of a few places, a feed-forward opponent flies the same flight from each place in every
-//! episode: it is recorded once and replayed, bit for bit the live flight ([`flight`];
+//! episode: it is recorded once and replayed, bit for bit the live flight (`env::flight`;
 //! [`VecEnv::fly_opponents_live`] flies it live instead). An episode ends as a race restarts
 //! in the referee: on any crash. The ego's crash (a collision included) is a terminal step
 //! with the crash penalty; the opponent crashing alone is a truncation (`timeouts`, so it is
@@ -527,7 +527,7 @@ impl VecEnv {
     }
 
     /// Flies every opponent live from now on, its controller stepped in every step, instead
-    /// of replaying its recorded flight ([`flight`]): for the tests and benches that compare
+    /// of replaying its recorded flight (`env::flight`): for the tests and benches that compare
     /// the two. An opponent in the middle of a replay goes on from the recorded state.
     pub fn fly_opponents_live(&mut self) {
         let book = self.flights.take();
