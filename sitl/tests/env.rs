@@ -1090,13 +1090,14 @@ fn a_changed_opponent_races_as_one_raced_from_the_start() {
 /// The opponent's recorded flights replay its live flight bit for bit: a race whose
 /// opponents fly live from the start and one that replays them give the same observations,
 /// rewards, ends and records at every step, through crashes, collisions, the opponent's own
-/// crashes, swapped places, a partial group of envs, a switch to live flight in the middle
-/// of replays, a snapshot restored in the middle of replays, and episodes made longer than
-/// the recordings from outside.
+/// crashes, swapped places, a partial group of envs, several rayon tasks recording at once, a
+/// snapshot restored in the middle of replays, episodes made longer than the recordings from
+/// outside, a clone, a change of opponent (new recordings) and a switch to live flight in the
+/// middle of replays.
 #[test]
 fn replayed_opponents_fly_as_live_ones() {
     let stage1 = OPPONENT;
-    let n = 40;
+    let n = 300;
     let config = EnvConfig {
         random_initial_episode_length: true,
         seed: 9,
@@ -1106,6 +1107,7 @@ fn replayed_opponents_fly_as_live_ones() {
         }),
         ..EnvConfig::stage2(n, stage1)
     };
+    let base_race = config.race.clone().unwrap();
     let mut live = VecEnv::new(config.clone()).unwrap();
     live.fly_opponents_live();
     let mut replayed = VecEnv::new(config).unwrap();
@@ -1119,7 +1121,7 @@ fn replayed_opponents_fly_as_live_ones() {
         })
     };
     let (mut collisions, mut opponent_crashes, mut ends) = (0, 0, 0);
-    for t in 0..2400 {
+    for t in 0..2600 {
         let a: Vec<f32> = (0..n).flat_map(|s| action(s, t)).collect();
         live.step(&a).unwrap();
         replayed.step(&a).unwrap();
@@ -1146,7 +1148,17 @@ fn replayed_opponents_fly_as_live_ones() {
                 live.set_episode_steps(&steps).unwrap();
                 replayed.set_episode_steps(&steps).unwrap();
             }
-            1800 => replayed.fly_opponents_live(),
+            1500 => replayed = replayed.clone(),
+            1800 => {
+                let race = RaceConfig {
+                    opponent: concat!(env!("CARGO_MANIFEST_DIR"), "/../policies/stage1.blob")
+                        .into(),
+                    ..base_race.clone()
+                };
+                live.set_race(race.clone()).unwrap();
+                replayed.set_race(race).unwrap();
+            }
+            2200 => replayed.fly_opponents_live(),
             _ => {}
         }
         // A crash within 0.3 m of the opponent (the rules' separation is 0.2 m) is a

@@ -13,6 +13,11 @@ use firmware_core::Controller;
 use firmware_core::controller::ControllerMemory;
 use std::sync::OnceLock;
 
+/// The most steps a flight records (2 min at 50 Hz, about 1.4 MB per flight): an episode
+/// longer than that flies its opponent live from there, so an env's memory does not grow
+/// with its episode length.
+pub const MAX_RECORDED_STEPS: u32 = 6_000;
+
 /// One recorded step of the opponent: its drone after the step (gate progress included),
 /// what its own rules said of the step, and its controller's bookkeeping after it.
 #[derive(Clone, Debug)]
@@ -32,8 +37,8 @@ pub(super) struct Flight {
 }
 
 impl Flight {
-    /// The flight of `controller` (reset to its spawn) from `spawn`, `max_steps` long or
-    /// until its own crash; each step is `VecEnv::step`'s for the opponent: the command from
+    /// The flight of `controller` (reset to its spawn) from `spawn`, `max_steps` long (at
+    /// most [`MAX_RECORDED_STEPS`]) or until its own crash; each step is `VecEnv::step`'s for the opponent: the command from
     /// the state before the step, the world's preset, the world's own rules.
     fn record(
         world: &World,
@@ -43,8 +48,8 @@ impl Flight {
     ) -> Self {
         let mut c = controller.clone();
         let mut drone = spawn;
-        let mut steps = Vec::with_capacity(max_steps as usize);
-        for _ in 0..max_steps {
+        let mut steps = Vec::new();
+        for _ in 0..max_steps.min(MAX_RECORDED_STEPS) {
             let command = c.step(&drone.body.state, None).command;
             let from = drone.position_m();
             drone.body.step(&world.preset, &command, world.dt_s);

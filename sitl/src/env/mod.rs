@@ -89,8 +89,9 @@ struct Slot {
     /// The ego's randomised airframe, latency and sensor noise this episode
     /// (`EnvConfig::randomize`).
     perturbed: Option<EpisodePerturbation>,
-    /// Stage 2: the opponent's spawn place and the steps it has flown since, while its
-    /// recorded flight is replayed (`flight`); `None` while its controller flies it live.
+    /// Stage 2: the opponent's spawn place and the steps it has flown since, set at every
+    /// race spawn and kept while its recorded flight is replayed (`flight`); `None` once its
+    /// controller flies it live (no recording, or past it, or restored from a snapshot).
     replay: Option<(usize, u32)>,
 }
 
@@ -528,7 +529,8 @@ impl VecEnv {
 
     /// Flies every opponent live from now on, its controller stepped in every step, instead
     /// of replaying its recorded flight (`env::flight`): for the tests and benches that compare
-    /// the two. An opponent in the middle of a replay goes on from the recorded state.
+    /// the two. An opponent in the middle of a replay goes on from the recorded state; a later
+    /// [`VecEnv::set_race`] keeps flying live.
     pub fn fly_opponents_live(&mut self) {
         let book = self.flights.take();
         for slot in &mut self.slots {
@@ -554,7 +556,10 @@ impl VecEnv {
             ));
         }
         let loaded = Race::load(&race)?;
-        self.flights = flight_book(&loaded, &self.world, self.max_steps);
+        if self.flights.is_some() {
+            // New recordings for the new opponent (an env flying live stays live).
+            self.flights = flight_book(&loaded, &self.world, self.max_steps);
+        }
         for slot in &mut self.slots {
             slot.opponent = Some(loaded.opponent.clone());
         }
