@@ -142,17 +142,7 @@ fn learning_record(out: &Path) -> Vec<serde_json::Value> {
 #[test]
 fn a_resumed_run_is_the_uninterrupted_run_bit_for_bit() {
     let ff = TrainConfig::parse(CONFIG).unwrap();
-    let mut race = TrainConfig::parse(include_str!("../configs/smoke_race.toml")).unwrap();
-    race.run.row = 'G';
-    race.run.iterations = 4;
-    race.run.checkpoint_every = 2;
-    race.run.eval_every = 4;
-    race.run.eval_races = 1;
-    race.env.num_envs = 16;
-    race.ppo.steps_per_env = 20;
-    if let Some(r) = &mut race.env.race {
-        r.opponent = Path::new(env!("CARGO_MANIFEST_DIR")).join("../policies/stage1_guarded.blob");
-    }
+    let race = tiny_race("../policies/stage1_guarded.blob");
     for (name, config) in [("ff", ff), ("g", race)] {
         assert_eq!((config.run.iterations, config.run.checkpoint_every), (4, 2));
         let whole = tmp(&format!("bitwise-{name}-whole"));

@@ -109,4 +109,10 @@ impl FlightBook {
     pub(super) fn recorded(&self, key: usize) -> Option<&Flight> {
         self.flights.get(key)?.get()
     }
+
+    /// The opponent controller's bookkeeping after `flown` recorded steps from spawn place
+    /// `key` (`None` before the first step, or where nothing is recorded).
+    pub(super) fn memory_after(&self, key: usize, flown: u32) -> Option<ControllerMemory> {
+        Some(self.recorded(key)?.step(flown.checked_sub(1)?)?.memory)
+    }
 }

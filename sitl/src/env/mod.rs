@@ -534,10 +534,10 @@ impl VecEnv {
     pub fn fly_opponents_live(&mut self) {
         let book = self.flights.take();
         for slot in &mut self.slots {
-            let last = slot.replay.take().and_then(|(key, flown)| {
-                let k = flown.checked_sub(1)?;
-                book.as_deref()?.recorded(key)?.step(k).map(|s| s.memory)
-            });
+            let last = slot
+                .replay
+                .take()
+                .and_then(|(key, flown)| book.as_deref()?.memory_after(key, flown));
             if let (Some(c), Some(memory)) = (slot.opponent.as_mut(), last) {
                 c.restore(&memory, &[]);
             }
@@ -631,33 +631,24 @@ fn replayed_step<'b>(
     slot: &mut Slot,
 ) -> Option<&'b FlightStep> {
     let (key, flown) = slot.replay?;
-    let found = flights.and_then(|book| {
+    let step = flights.and_then(|book| {
         let controller = slot.opponent.as_ref()?;
         let flight = if flown == 0 {
             book.flight(key, world, &slot.drones[1], controller)?
         } else {
             book.recorded(key)?
         };
-        Some((
-            flight.step(flown),
-            flown.checked_sub(1).and_then(|k| flight.step(k)),
-        ))
+        flight.step(flown)
     });
-    match found {
-        Some((Some(step), _)) => Some(step),
-        Some((None, last)) => {
-            // Past the recording: the controller takes over where the flight stopped.
-            if let (Some(c), Some(last)) = (slot.opponent.as_mut(), last) {
-                c.restore(&last.memory, &[]);
-            }
-            slot.replay = None;
-            None
+    if step.is_none() {
+        // Live from here; past the recording, the controller takes over where it stopped.
+        let last = flights.and_then(|book| book.memory_after(key, flown));
+        if let (Some(c), Some(memory)) = (slot.opponent.as_mut(), last) {
+            c.restore(&memory, &[]);
         }
-        None => {
-            slot.replay = None;
-            None
-        }
+        slot.replay = None;
     }
+    step
 }
 
 /// The commands of the opponents of `slots` flown live (stage 2; empty in a time trial),

@@ -159,10 +159,9 @@ impl VecEnv {
 /// `slot`'s state; an opponent whose flight is being replayed (`super::flight`) is recorded
 /// with the controller bookkeeping of its last recorded step, as if it had been flown live.
 fn slot_snapshot(slot: &Slot, flights: Option<&FlightBook>) -> SlotSnapshot {
-    let replayed = slot.replay.and_then(|(key, flown)| {
-        let last = flown.checked_sub(1)?;
-        Some(flights?.recorded(key)?.step(last)?.memory)
-    });
+    let replayed = slot
+        .replay
+        .and_then(|(key, flown)| flights?.memory_after(key, flown));
     SlotSnapshot {
         drones: slot.drones,
         opponent: slot.opponent.as_ref().map(|c| {
