@@ -16,7 +16,8 @@ mod presets;
 mod validate;
 
 /// A whole training run. Its TOML sections are `[run]`, `[env]`, `[ppo]`, `[reward]`,
-/// `[pass_decay]`, `[warm_start]`, `[guard]`, `[race]` and `[[opponent_curriculum]]`; the
+/// `[pass_decay]`, `[randomize_ramp]`, `[warm_start]`, `[guard]`, `[race]` and
+/// `[[opponent_curriculum]]`; the
 /// environment's three
 /// (`[env]`, `[reward]`, `[race]`) all land in [`TrainConfig::env`], sitl's one environment
 /// schema.
@@ -34,6 +35,9 @@ pub struct TrainConfig {
     pub ppo: PpoConfig,
     /// Optional fall of the pass reward's weight over the run (not in the paper).
     pub pass_decay: Option<PassDecay>,
+    /// Optional rise of the share of randomised spawns over the run (`env.randomize`; not in
+    /// the paper).
+    pub randomize_ramp: Option<RandomizeRamp>,
     /// Optional imitation warm start before PPO (not in the paper).
     pub warm_start: Option<WarmStart>,
     /// Optional test of every actor update on the measured return (not in the paper).
@@ -70,6 +74,8 @@ struct TrainFile {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pass_decay: Option<PassDecay>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    randomize_ramp: Option<RandomizeRamp>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     warm_start: Option<WarmStart>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     guard: Option<Guard>,
@@ -90,6 +96,7 @@ impl From<TrainFile> for TrainConfig {
             run: f.run,
             ppo: f.ppo,
             pass_decay: f.pass_decay,
+            randomize_ramp: f.randomize_ramp,
             warm_start: f.warm_start,
             guard: f.guard,
             opponent_curriculum: f.opponent_curriculum,
@@ -108,6 +115,7 @@ impl From<TrainConfig> for TrainFile {
             env: c.env,
             ppo: c.ppo,
             pass_decay: c.pass_decay,
+            randomize_ramp: c.randomize_ramp,
             warm_start: c.warm_start,
             guard: c.guard,
             opponent_curriculum: c.opponent_curriculum,
@@ -311,6 +319,11 @@ pub struct Selection {
     pub seed: u64,
     /// The first iteration whose evaluation is a candidate (earlier ones are not validated).
     pub from_iteration: u32,
+    /// The validation flown under this perturbation (`sitl eval --perturb`'s text; spans
+    /// drawn per episode), so that a recipe trained for robustness ranks its candidates by
+    /// how they fly under it. Absent: unperturbed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub perturb: Option<sitl::perturb::PerturbSpec>,
 }
 
 fn default_eval_races() -> u32 {
@@ -384,6 +397,21 @@ pub struct PassDecay {
     /// The last iteration at `reward.pass`.
     pub from_iteration: u32,
     /// The first iteration at `final_weight`.
+    pub to_iteration: u32,
+}
+
+/// A rising share of randomised training spawns ([`TrainConfig::randomize_ramp`], not in the
+/// paper): none of the ego's spawns is drawn from `env.randomize` until `from_iteration`, then
+/// a share rising linearly to `env.randomize_share` at `to_iteration`. The network first
+/// learns the track on the nominal airframe (fast, as `stage1.toml` does), then to fly it
+/// under the draws with its own critic still learning (docs/journal/stage1.md "Randomisation
+/// switched on late"). Iterations are absolute, like [`PassDecay`]'s.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RandomizeRamp {
+    /// The last iteration without randomised spawns.
+    pub from_iteration: u32,
+    /// The first iteration at `env.randomize_share`.
     pub to_iteration: u32,
 }
 
@@ -611,6 +639,21 @@ impl TrainConfig {
             ),
             ..self.env.reward
         }
+    }
+
+    /// The share of the ego's spawns that `env.randomize` draws for in the rollout of
+    /// `iteration`: `env.randomize_share`, raised from 0 by `randomize_ramp` when there is one.
+    pub fn randomize_share_at(&self, iteration: u32) -> f32 {
+        let Some(r) = &self.randomize_ramp else {
+            return self.env.randomize_share;
+        };
+        linear_fall(
+            0.0,
+            self.env.randomize_share,
+            r.from_iteration,
+            r.to_iteration,
+            iteration,
+        )
     }
 
     /// The race the training envs fly at `iteration`: `[race]` with the opponent of the

@@ -57,7 +57,7 @@ pub fn referee_prefers(a: &IterationMetrics, b: &IterationMetrics) -> bool {
 }
 
 /// The validation of `run.select`: the deterministic policy flown `episodes` × 45 s alone
-/// from the selection's spawns (seed `seed`).
+/// from the selection's spawns (seed `seed`), under `perturb` when it names one.
 pub fn selection_eval(blob: &[u8], preset: Preset, select: &Selection) -> Option<Report> {
     let spec = PilotSpec::from_blob("training", blob).ok()?;
     let eval = EvalConfig {
@@ -66,7 +66,10 @@ pub fn selection_eval(blob: &[u8], preset: Preset, select: &Selection) -> Option
         seconds: 45.0,
         seed: select.seed,
         spawn: Some(select.spawn),
-        perturbation: sitl::perturb::Perturbation::NONE,
+        perturbation: select
+            .perturb
+            .as_ref()
+            .map_or(sitl::perturb::Perturbation::NONE, |p| *p.value()),
     };
     Some(report(&spec, None, &eval))
 }
@@ -210,6 +213,7 @@ mod tests {
                 episodes: 10,
                 seed: 7,
                 from_iteration: 20,
+                perturb: None,
             }),
             ..RunConfig::default()
         };
@@ -243,6 +247,35 @@ mod tests {
         assert_eq!(
             best_evaluation(&history, &without).map(|m| m.iteration),
             Some(10)
+        );
+    }
+
+    /// `run.select.perturb` flies the validation under the perturbation: `stage1.blob`, which
+    /// one step of latency breaks, validates worse under it; absent, the validation is the
+    /// unperturbed one.
+    #[test]
+    fn a_perturbed_selection_flies_its_perturbation() {
+        let blob = std::fs::read(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../policies/stage1.blob"
+        ))
+        .unwrap();
+        let select = |perturb: Option<&str>| Selection {
+            spawn: SpawnMode::AlongTrack,
+            episodes: 6,
+            seed: 7,
+            from_iteration: 0,
+            perturb: perturb.map(|p| sitl::perturb::PerturbSpec::parse(p).unwrap()),
+        };
+        let preset = sitl::dynamics::Preset::paper();
+        let nominal = selection_eval(&blob, preset, &select(None)).unwrap();
+        let late = selection_eval(&blob, preset, &select(Some("latency=1"))).unwrap();
+        assert!(nominal.success_rate > 0.9, "{}", nominal.success_rate);
+        assert!(
+            late.crash_rate > nominal.crash_rate + 0.2,
+            "{} against {}",
+            late.crash_rate,
+            nominal.crash_rate
         );
     }
 

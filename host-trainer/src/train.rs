@@ -281,6 +281,7 @@ impl Loop {
         // The opponent of the curriculum's stage the loop starts in.
         let mut env = VecEnv::new(EnvConfig {
             race: config.race_at(state.iteration),
+            randomize_share: config.randomize_share_at(state.iteration),
             ..config.env_config(env_seed)
         })?;
         let mut rollout = Rollout::new(env.num_envs(), env.obs_dim());
@@ -385,6 +386,8 @@ fn iteration<A: PolicyNet, C: ValueNet>(
         .as_ref()
         .is_none_or(|w| state.iteration >= w.critic_iterations);
     lp.env.set_reward_weights(config.reward_at(state.iteration));
+    lp.env
+        .set_randomize_share(config.randomize_share_at(state.iteration))?;
     if state.iteration > 0 {
         let race = config.race_at(state.iteration);
         if race != config.race_at(state.iteration - 1)

@@ -313,6 +313,65 @@ fn the_pass_weight_falls_linearly_between_its_iterations() {
     }
 }
 
+/// `[randomize_ramp]`: no spawn is randomised until its first iteration, then a share rising
+/// linearly to `env.randomize_share`; absent, the share is `env.randomize_share` throughout
+/// and the canonical TOML has no key (older configs keep their hash). A ramp without
+/// `env.randomize`, a reversed or empty span, or one past the budget is refused by name; so
+/// is a share outside [0, 1].
+#[test]
+fn the_randomised_share_rises_between_its_iterations() {
+    const ROBUST: &str = include_str!("../configs/experiments/stage1_robust.toml");
+    let ramp = "\n[randomize_ramp]\nfrom_iteration = 100\nto_iteration = 500\n";
+    let c = TrainConfig::parse(&format!("{ROBUST}{ramp}")).unwrap();
+    let plain = TrainConfig::parse(ROBUST).unwrap();
+    for (i, want) in [(0, 0.0), (100, 0.0), (300, 0.5), (500, 1.0), (10_000, 1.0)] {
+        let share = c.randomize_share_at(i);
+        assert!((share - want).abs() < 1e-6, "iteration {i}: {share}");
+        assert_eq!(plain.randomize_share_at(i), 1.0);
+    }
+    let half = TrainConfig::parse(&format!(
+        "{}{ramp}",
+        ROBUST.replacen("randomize =", "randomize_share = 0.5\nrandomize =", 1)
+    ))
+    .unwrap();
+    assert!((half.randomize_share_at(300) - 0.25).abs() < 1e-6);
+    assert_ne!(c.hash(), plain.hash());
+    let text = toml::to_string(&plain).unwrap();
+    assert!(
+        !text.contains("randomize_ramp") && !text.contains("randomize_share"),
+        "{text}"
+    );
+    assert_eq!(
+        TrainConfig::parse(&toml::to_string(&c).unwrap()).unwrap(),
+        c
+    );
+    let no_draws = ROBUST
+        .lines()
+        .filter(|l| !l.starts_with("randomize ="))
+        .collect::<Vec<_>>()
+        .join("\n");
+    for (text, says) in [
+        (format!("{no_draws}{ramp}"), "set env.randomize"),
+        (
+            format!("{ROBUST}\n[randomize_ramp]\nfrom_iteration = 500\nto_iteration = 500\n"),
+            "below to_iteration",
+        ),
+        (
+            format!("{ROBUST}\n[randomize_ramp]\nfrom_iteration = 100\nto_iteration = 2500\n"),
+            "below run.iterations 2500",
+        ),
+        (
+            ROBUST.replacen("randomize =", "randomize_share = 1.5\nrandomize =", 1),
+            "randomize_share",
+        ),
+    ] {
+        match TrainConfig::parse(&text) {
+            Err(e) => assert!(e.to_string().contains(says), "{says}: {e}"),
+            Ok(_) => panic!("accepted, expected a refusal saying {says}"),
+        }
+    }
+}
+
 /// `env.fold_mirror`: read, hashed only when on (older configs keep their hash), carried
 /// into the observation spec (pipeline version 2) that the env and the blob use, and
 /// refused beside a warm start, whose teacher labels world motors.

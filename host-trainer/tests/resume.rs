@@ -198,6 +198,7 @@ fn a_run_killed_at_any_iteration_even_inside_the_validation_resumes_bit_for_bit(
         episodes: 2,
         seed: 7,
         from_iteration: 2,
+        perturb: None,
     });
     config.run.keep_best = true;
     TrainConfig::parse(&toml::to_string(&config).unwrap()).unwrap();
@@ -376,6 +377,7 @@ fn a_selection_exports_the_validations_best_across_a_resume() {
         episodes: 6,
         seed: 7,
         from_iteration: 3,
+        perturb: None,
     };
     config.run.select = Some(select.clone());
     config.env.num_envs = 64;
@@ -711,6 +713,41 @@ fn a_fork_exports_a_best_actor_from_before_the_fork() {
         std::fs::read(parent.join(format!("checkpoints/best_iter_{best:06}.blob"))).unwrap();
     assert!(exported == parents);
     for d in [parent, child] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}
+
+/// `[randomize_ramp]`: before its first iteration no training spawn is randomised (the
+/// record is that of the run without `env.randomize`), after it the draws fly (the record
+/// parts from that run's), and a run stopped inside the ramp and resumed is the
+/// uninterrupted one bit for bit.
+#[test]
+fn a_randomisation_ramp_starts_at_its_iteration_and_resumes_bit_for_bit() {
+    let plain = TrainConfig::parse(CONFIG).unwrap();
+    let mut ramp = plain.clone();
+    ramp.env.randomize = Some(sitl::perturb::PerturbSpec::parse("latency=1,thrust=0.8").unwrap());
+    ramp.randomize_ramp = Some(host_trainer::config::RandomizeRamp {
+        from_iteration: 1,
+        to_iteration: 3,
+    });
+    let ramp = TrainConfig::parse(&toml::to_string(&ramp).unwrap()).unwrap();
+    assert_eq!((ramp.run.iterations, ramp.run.checkpoint_every), (4, 2));
+    let whole = tmp("ramp-whole");
+    run(&ramp, &options(&whole, false, None)).unwrap();
+    let nominal = tmp("ramp-nominal");
+    run(&plain, &options(&nominal, false, None)).unwrap();
+    let (a, b) = (learning_record(&whole), learning_record(&nominal));
+    assert_eq!(a[..2], b[..2], "iterations 0 and 1 randomise nothing");
+    assert_ne!(a[2], b[2], "iteration 2 randomises half the spawns");
+
+    let stopped = tmp("ramp-stopped");
+    run(&ramp, &options(&stopped, false, Some(2))).unwrap();
+    run(&ramp, &options(&stopped, true, None)).unwrap();
+    let device = Device::flex().autodiff();
+    let nets = |d: &Path| checkpoint_blob(&ramp, d, &device).unwrap().1;
+    assert!(nets(&whole) == nets(&stopped), "the networks differ");
+    assert_eq!(learning_record(&whole), learning_record(&stopped));
+    for d in [whole, nominal, stopped] {
         let _ = std::fs::remove_dir_all(d);
     }
 }

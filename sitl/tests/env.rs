@@ -982,6 +982,70 @@ fn randomize_perturbs_the_ego_as_the_referee_does() {
     assert_eq!(json["randomize"], "latency=0:1, noise=1");
 }
 
+/// `randomize_share`: at 0 a randomised config flies bit for bit the nominal envs through
+/// their respawns (nothing drawn reaches the flight, the spawns stay); at 1 it is the plain
+/// randomised config; in between some envs fly perturbed and some not; changed by
+/// `set_randomize_share` from the next spawn on; a share outside [0, 1] is refused by name,
+/// and a share of 1 leaves the serialised config as before.
+#[test]
+fn a_share_of_the_spawns_is_randomised() {
+    use sitl::perturb::PerturbSpec;
+    let with = |share: f32| {
+        VecEnv::time_trial(EnvConfig {
+            randomize: Some(PerturbSpec::parse("thrust=0.7,latency=1").unwrap()),
+            randomize_share: share,
+            ..config(64)
+        })
+    };
+    // Rewards per env and step over enough steps that episodes end and respawn.
+    let fly = |mut env: VecEnv, share_after: Option<f32>| {
+        let mut rewards = Vec::new();
+        let mut ends = 0;
+        for k in 0..400 {
+            if k == 200 {
+                if let Some(s) = share_after {
+                    env.set_randomize_share(s).unwrap();
+                }
+            }
+            let a: Vec<f32> = (0..64 * 4)
+                .map(|i| ((i * 7 + k) % 11) as f32 / 10.0)
+                .collect();
+            env.step(&a).unwrap();
+            rewards.push(env.rewards().to_vec());
+            ends += env.dones().iter().filter(|d| **d).count();
+        }
+        (rewards, ends)
+    };
+    let (nominal, ends) = fly(VecEnv::time_trial(config(64)), None);
+    assert!(ends > 64, "too few respawns to test: {ends}");
+    assert_eq!(fly(with(0.0), None).0, nominal);
+    let full = VecEnv::time_trial(EnvConfig {
+        randomize: Some(PerturbSpec::parse("thrust=0.7,latency=1").unwrap()),
+        ..config(64)
+    });
+    assert_eq!(fly(with(1.0), None).0, fly(full, None).0);
+    // Half: the first step of some envs is the nominal one, of others not.
+    let half = fly(with(0.5), None).0;
+    let same = (0..64).filter(|&i| half[0][i] == nominal[0][i]).count();
+    assert!((10..=54).contains(&same), "{same} of 64 envs flew nominal");
+    // Raised from 0 to 1 half-way: nominal until then, randomised spawns after.
+    let raised = fly(with(0.0), Some(1.0)).0;
+    assert_eq!(raised[..200], nominal[..200]);
+    assert_ne!(raised[200..], nominal[200..]);
+    let mut env = with(0.5);
+    let e = env.set_randomize_share(1.5).unwrap_err().to_string();
+    assert!(e.contains("randomize_share"), "{e}");
+    let e = EnvConfig {
+        randomize_share: -0.1,
+        ..config(1)
+    }
+    .validate()
+    .unwrap_err();
+    assert_eq!(e.field, "randomize_share");
+    let json = serde_json::to_value(config(1)).unwrap();
+    assert!(json.get("randomize_share").is_none(), "{json}");
+}
+
 /// `race.ego_ahead_fraction` swaps the stage-2 spawn's places: at 1 every ego starts 1 m
 /// ahead of its opponent (the opponent at (−1, 0, 0) m in the ego's frame), at 0 (the paper's)
 /// 1 m behind, at 0.5 some of each; a share outside [0, 1] is refused with the field named.

@@ -33,6 +33,7 @@ impl TrainConfig {
             ppo: PpoConfig::default(),
             warm_start: None,
             pass_decay: None,
+            randomize_ramp: None,
             guard: None,
             opponent_curriculum: Vec::new(),
         }
@@ -66,6 +67,7 @@ impl TrainConfig {
                     episodes: 100,
                     seed: 7,
                     from_iteration: 2000,
+                    perturb: None,
                 }),
                 ..RunConfig::default()
             },
@@ -88,6 +90,7 @@ impl TrainConfig {
                 from_iteration: 1700,
                 to_iteration: 2000,
             }),
+            randomize_ramp: None,
             guard: None,
             opponent_curriculum: Vec::new(),
         }

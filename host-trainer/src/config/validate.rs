@@ -33,6 +33,19 @@ pub(super) fn validate(c: &TrainConfig) -> Result<(), ConfigError> {
             );
         }
     }
+    if let Some(r) = &c.randomize_ramp {
+        if c.env.randomize.is_none() {
+            return bad(
+                "randomize_ramp raises the share of env.randomize's draws; set env.randomize",
+            );
+        }
+        if r.from_iteration >= r.to_iteration || r.to_iteration >= c.run.iterations {
+            return bad(format!(
+                "randomize_ramp: from_iteration {} must be below to_iteration {}, and to_iteration below run.iterations {}",
+                r.from_iteration, r.to_iteration, c.run.iterations
+            ));
+        }
+    }
     ppo(c)
 }
 

@@ -97,6 +97,14 @@ fn is_zero(v: &f32) -> bool {
     *v == 0.0
 }
 
+fn one() -> f32 {
+    1.0
+}
+
+fn is_one(v: &f32) -> bool {
+    *v == 1.0
+}
+
 fn is_false(v: &bool) -> bool {
     !*v
 }
@@ -158,6 +166,12 @@ pub struct EnvConfig {
     /// opponent flies the nominal airframe. Default none (left out).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub randomize: Option<PerturbSpec>,
+    /// The share of spawns whose ego `randomize` draws (the others fly the nominal airframe
+    /// and latency, without noise): a trainer raises it over a run (`[randomize_ramp]`).
+    /// Whether a spawn is drawn comes from the randomisation generator, so the spawns stay
+    /// where they were. Default 1 (left out at 1).
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub randomize_share: f32,
     /// Which terms an observation holds: 17 values for a time trial (row A), 20 for row B,
     /// 30 for rows C-G. In a training config, `run.row` sets it.
     #[serde(skip, default = "time_trial_layout")]
@@ -225,6 +239,7 @@ impl EnvConfig {
             replay_fraction: 0.0,
             fold_mirror: false,
             randomize: None,
+            randomize_share: 1.0,
             layout: ObservationLayout::TimeTrial17,
             reward: RewardWeights::default(),
             race: None,
@@ -397,6 +412,7 @@ impl EnvConfig {
             ("stage1_fraction", self.stage1_fraction),
             ("stage2_fraction", self.stage2_fraction),
             ("replay_fraction", self.replay_fraction),
+            ("randomize_share", self.randomize_share),
         ] {
             if !(0.0..=1.0).contains(&share) {
                 return refuse(field, format!("{share}: expected a share in [0, 1]"));

@@ -263,6 +263,7 @@ impl VecEnv {
                 .as_ref()
                 .map_or(0.0, |r| r.ego_ahead_fraction),
             randomize: self.config.randomize.as_ref().map(|p| *p.value()),
+            randomize_share: self.config.randomize_share,
         }
     }
 
@@ -318,6 +319,18 @@ impl VecEnv {
     /// worlds, episodes and observations are left as they are.
     pub fn set_reward_weights(&mut self, weights: RewardWeights) {
         self.config.reward = weights;
+    }
+
+    /// Changes the share of spawns whose ego is randomised (`EnvConfig::randomize_share`)
+    /// from the next spawn on (a trainer's ramp); the episodes in flight keep their draws.
+    pub fn set_randomize_share(&mut self, share: f32) -> Result<(), EnvError> {
+        let changed = EnvConfig {
+            randomize_share: share,
+            ..self.config.clone()
+        };
+        changed.validate().map_err(EnvError::Config)?;
+        self.config = changed;
+        Ok(())
     }
 
     /// The observation spec every observation follows (recorded in exported blobs).

@@ -48,6 +48,8 @@ pub(super) struct SpawnRule {
     pub(super) ego_ahead_fraction: f32,
     /// The ego's domain randomisation (`EnvConfig::randomize`), drawn anew at every spawn.
     pub(super) randomize: Option<Perturbation>,
+    /// The share of spawns `randomize` draws for (below 1, a draw decides; at 1, none).
+    pub(super) randomize_share: f32,
 }
 
 /// A new episode in `slot`: a spawn drawn from its generator. In a race, the paper's stage-2 spawn
@@ -63,8 +65,9 @@ pub(super) struct SpawnRule {
 ///
 /// With `randomize`, the ego's airframe and latency are then drawn (from the slot's own
 /// randomisation generator: the spawns stay those of the unrandomised envs), and the
-/// commands in flight are those its
-/// propellers turn at: stopped after a spawn at rest, the replayed step's after a replay.
+/// commands in flight are those its propellers turn at: stopped after a spawn at rest, the
+/// replayed step's after a replay. Below a `randomize_share` of 1, a draw from the same
+/// generator first decides whether this spawn is randomised at all.
 pub(super) fn respawn(
     world: &World,
     progress: &TrackProgress,
@@ -74,6 +77,10 @@ pub(super) fn respawn(
 ) {
     let replayed = place(world, progress, rule, slot);
     if let Some(p) = &rule.randomize {
+        if rule.randomize_share < 1.0 && slot.perturb_rng.random::<f32>() >= rule.randomize_share {
+            slot.perturbed = None;
+            return;
+        }
         let mut drawn = p.episode(&world.preset, slot.perturb_rng.random::<u64>(), 0);
         drawn.restart_turning(if replayed {
             map.command(&slot.previous_action)
