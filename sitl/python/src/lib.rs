@@ -165,7 +165,8 @@ impl RustVecEnv {
     #[pyo3(signature = (*, task, num_envs, preset, seed, spawn, episode_s,
         random_initial_episode_length, opponent, competition, competition_weight, row,
         velocity_scale_mps, spawn_speed_mps, stage1_fraction, replay_fraction=0.0,
-        reward_weights=None, stage2_fraction=0.0, fold_mirror=false, randomize=None))]
+        reward_weights=None, stage2_fraction=0.0, fold_mirror=false, randomize=None,
+        randomize_share=1.0))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         task: &str,
@@ -187,6 +188,7 @@ impl RustVecEnv {
         stage2_fraction: f32,
         fold_mirror: bool,
         randomize: Option<&str>,
+        randomize_share: f32,
     ) -> PyResult<Self> {
         let value_error = |e: String| PyValueError::new_err(e);
         let task: Task = task.parse().map_err(value_error)?;
@@ -240,6 +242,7 @@ impl RustVecEnv {
                         .map_err(|e| PyValueError::new_err(format!("randomize: {e}")))
                 })
                 .transpose()?,
+            randomize_share,
             layout: row.observation_layout(),
             reward: reward_weights_from(reward_weights.unwrap_or_default())?,
             race,

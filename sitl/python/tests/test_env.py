@@ -311,6 +311,7 @@ def test_race_events():
         ({"task": "race", "opponent": str(POLICIES / "stage2_G.blob")}, ValueError, "observes an opponent"),
         ({"randomize": "mass=-1"}, ValueError, "randomize: mass: must lie in"),
         ({"randomize": "gravity=2"}, ValueError, "unknown perturbation 'gravity'"),
+        ({"randomize": "noise=1", "randomize_share": 1.5}, ValueError, "randomize_share"),
     ],
 )
 def test_bad_arguments_raise(kw, exc, text):

@@ -77,6 +77,7 @@ def make_vec_env(
     fold_mirror: bool | None = None,
     policy: str | os.PathLike[str] | Policy | None = None,
     randomize: str | None = None,
+    randomize_share: float = 1.0,
 ) -> OvertakeVecEnv:
     """``num_envs`` auto-resetting environments of a time trial or a race.
 
@@ -137,6 +138,8 @@ def make_vec_env(
             ``sitl eval --perturb``'s words, e.g. ``"latency=0:1,motor-tau-ms=0:30,noise=1"``:
             airframe and latency drawn at every spawn, sensor noise on the observed state
             every step (docs/DESIGN.md "Perturbations"). ``None``: the nominal world.
+        randomize_share: the share of spawns ``randomize`` draws for, in [0, 1] (the others
+            fly the nominal airframe; host-trainer's ``env.randomize_share``).
         policy: a blob path or :class:`Policy`: build the envs that policy observes (its
             layout, velocity scale and fold). A setting passed as well that contradicts it
             is a ``ValueError``.
@@ -179,6 +182,7 @@ def make_vec_env(
         row=row,
         reward_weights=reward_weights,
         randomize=randomize,
+        randomize_share=randomize_share,
         **env_settings,
     )
     return OvertakeVecEnv(env, task=task)
