@@ -10,6 +10,10 @@ each bar holds:
   drawn per episode, as the referee's levels are; 20 episodes of seed 0 each): success
   >= 0.9.
 
+With `--opponent`, the blobs are race egos (row G) raced against it from jittered stage-2
+starts, and the bar is the item's for G: success >= 0.9 everywhere (no lap or crash bar)
+and the int8 copy within 0.02 success and 1 % mean lap.
+
 The int8 copy's lap is compared by the mean lap (over every lap flown): the best of 100
 episodes is a minimum that moves by 1-2 % between the f32 and int8 flights of one policy
 whose mean laps agree. The four corners of thrust and mass ±10 % are flown too and shown
@@ -18,6 +22,7 @@ thrust-to-weight ratio the policy learned on.
 
     python3 tools/robust_bar.py --sitl target/release/sitl --tools target/release/tools \\
         policies/stage1.blob runs/stage1_robust/stage1-robust.blob
+    python3 tools/robust_bar.py --opponent policies/stage1.blob policies/stage2.blob
 """
 
 import argparse
@@ -42,6 +47,7 @@ MAX_CRASHES_PER_S = 0.05
 MAX_BEST_LAP_S = 7.8
 INT8_SUCCESS_GAP = 0.02
 INT8_LAP_GAP = 0.01
+RACE_SUCCESS_FLOOR = 0.9
 
 
 def run(cmd):
@@ -50,10 +56,12 @@ def run(cmd):
         sys.exit(f"{' '.join(cmd)} failed:\n{r.stderr}")
 
 
-def evaluate(sitl, blob, perturb, episodes, seed, workdir):
+def evaluate(sitl, blob, opponent, perturb, episodes, seed, workdir):
     out = os.path.join(workdir, "eval.json")
     cmd = [sitl, "eval", "--ego", blob, "--jitter", "--seed", str(seed),
            "--episodes", str(episodes), "--json", out]
+    if opponent:
+        cmd += ["--opponent", opponent]
     if perturb:
         cmd += ["--perturb", perturb]
     run(cmd)
@@ -70,6 +78,7 @@ def main():
     p.add_argument("blobs", nargs="+", metavar="BLOB")
     p.add_argument("--sitl", default="target/release/sitl")
     p.add_argument("--tools", default="target/release/tools")
+    p.add_argument("--opponent", help="race the blobs (row G) against this opponent")
     a = p.parse_args()
     print("| blob | condition | f32: success, crashes /s, best (mean) lap | "
           "int8: success, crashes /s, best (mean) lap | bar |")
@@ -80,15 +89,21 @@ def main():
             int8 = os.path.join(d, "int8.blob")
             run([a.tools, "convert", "--dtype", "i8", "--in", blob, "--out", int8])
             for label, perturb, episodes, seed, floor in CONDITIONS:
-                f, q = (evaluate(a.sitl, b, perturb, episodes, seed, d) for b in (blob, int8))
+                f, q = (evaluate(a.sitl, b, a.opponent, perturb, episodes, seed, d)
+                        for b in (blob, int8))
+                if a.opponent and floor is not None:
+                    floor = RACE_SUCCESS_FLOOR
                 if floor is None:
                     checks = None
                 else:
                     checks = [min(f["success_rate"], q["success_rate"]) >= floor]
-                if perturb is None:
+                if perturb is None and not a.opponent:
                     checks += [
                         f["crash_rate"] <= MAX_CRASHES_PER_S,
                         bool(f["best_lap_s"]) and f["best_lap_s"] <= MAX_BEST_LAP_S,
+                    ]
+                if perturb is None:
+                    checks += [
                         abs(f["success_rate"] - q["success_rate"]) <= INT8_SUCCESS_GAP,
                         bool(f["mean_lap_s"]) and bool(q["mean_lap_s"])
                         and abs(q["mean_lap_s"] / f["mean_lap_s"] - 1) <= INT8_LAP_GAP,
