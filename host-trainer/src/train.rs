@@ -318,7 +318,7 @@ impl Loop {
                 episodes = world.episodes;
             }
             None if state.iteration > 0 => println!(
-                "note: the checkpoint keeps no env state (loop.json): the envs are respawned, so the run is not bit for bit the uninterrupted one from iteration {}",
+                "note: the envs are respawned at iteration {} (the checkpoint keeps no env state, loop.json, or a fork changed [env]): the run is not bit for bit the uninterrupted one from there",
                 state.iteration
             ),
             None => {}
