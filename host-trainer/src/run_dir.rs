@@ -131,7 +131,55 @@ const CHECKPOINT_FILES: [&str; 4] = [
     "critic_optim.bpk",
 ];
 
+/// The lock a trainer holds on its run directory (`run.lock`, an exclusive `flock`) from
+/// before its first write to its exit: a second trainer on the same directory (a `--resume`
+/// typed while the run still goes) is refused, instead of writing checkpoints beside the
+/// first and cutting its metrics file. The kernel releases it when the trainer dies, so a
+/// killed run resumes without clean-up. Without `flock` (not unix) nothing is locked.
+#[derive(Debug)]
+pub struct RunLock {
+    _file: std::fs::File,
+}
+
+/// Takes the lock of the run directory `out` ([`RunLock`]), as a trainer does before writing
+/// it; an error says which trainer holds it.
+pub fn lock(out: &Path) -> Result<RunLock, TrainError> {
+    RunDir::new(out).lock()
+}
+
 impl RunDir {
+    /// Takes the run's lock (creating the directory), or says which trainer holds it.
+    pub fn lock(&self) -> Result<RunLock, TrainError> {
+        use std::io::Write;
+        std::fs::create_dir_all(&self.out).map_err(io(&self.out))?;
+        let path = self.file("run.lock");
+        let mut file = std::fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .read(true)
+            .write(true)
+            .open(&path)
+            .map_err(io(&path))?;
+        #[cfg(unix)]
+        if let Err(e) =
+            rustix::fs::flock(&file, rustix::fs::FlockOperation::NonBlockingLockExclusive)
+        {
+            if e == rustix::io::Errno::WOULDBLOCK {
+                let holder = std::fs::read_to_string(&path).unwrap_or_default();
+                return Err(TrainError::OutDir(format!(
+                    "{}: another trainer is writing this run ({}); wait for it to end or stop it, then --resume",
+                    self.out.display(),
+                    holder.trim()
+                )));
+            }
+            return Err(TrainError::OutDir(format!("{}: {e}", path.display())));
+        }
+        file.set_len(0)
+            .and_then(|()| writeln!(file, "pid {}", std::process::id()))
+            .map_err(io(&path))?;
+        Ok(RunLock { _file: file })
+    }
+
     /// The run directory `out` (nothing is created).
     pub fn new(out: &Path) -> Self {
         Self {

@@ -96,6 +96,8 @@ fn run_networks<A: Imitate, C: ValueNet>(
 ) -> Result<RunSummary, TrainError> {
     let dir = RunDir::new(&options.out);
     let mut state = start::<A, C>(config, options, &dir)?;
+    // Before the first write (`start` only reads a run it resumes).
+    let _lock = dir.lock()?;
     dir.write_config(config)?;
     dir.start_metrics(&state.history, state.iteration)?;
     let mut lp = Loop::new(config, &mut state)?;

@@ -751,3 +751,34 @@ fn a_randomisation_ramp_starts_at_its_iteration_and_resumes_bit_for_bit() {
         let _ = std::fs::remove_dir_all(d);
     }
 }
+
+/// Issue "faults": a second trainer on a run directory that a trainer is writing (a
+/// `--resume` typed while the run still goes) is refused with the holder named, and writes
+/// nothing: the running trainer's metrics and checkpoints stay whole. Once the lock is
+/// released (the first trainer ended or died), the resume runs.
+#[test]
+fn a_second_trainer_on_a_live_run_is_refused() {
+    let config = TrainConfig::parse(CONFIG).unwrap();
+    let out = tmp("locked");
+    run(&config, &options(&out, false, Some(2))).unwrap();
+    let before = std::fs::read(out.join("metrics.jsonl")).unwrap();
+    let held = host_trainer::run_dir::lock(&out).unwrap();
+    let e = run(&config, &options(&out, true, None))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("another trainer is writing this run (pid "),
+        "{e}"
+    );
+    assert_eq!(std::fs::read(out.join("metrics.jsonl")).unwrap(), before);
+    assert_eq!(
+        std::fs::read_to_string(out.join("checkpoints/latest"))
+            .unwrap()
+            .trim(),
+        "iter_000002"
+    );
+    drop(held);
+    let s = run(&config, &options(&out, true, None)).unwrap();
+    assert_eq!(s.iterations, 4);
+    let _ = std::fs::remove_dir_all(out);
+}
