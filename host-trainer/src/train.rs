@@ -95,9 +95,11 @@ fn run_networks<A: Imitate, C: ValueNet>(
     options: &RunOptions,
 ) -> Result<RunSummary, TrainError> {
     let dir = RunDir::new(&options.out);
-    let mut state = start::<A, C>(config, options, &dir)?;
-    // Before the first write (`start` only reads a run it resumes).
+    refuse_unstartable(config)?;
+    // Held from before the first write (a fresh run's directory, a fork's first checkpoint,
+    // a resume's cut metrics) to the end.
     let _lock = dir.lock()?;
+    let mut state = start::<A, C>(config, options, &dir)?;
     dir.write_config(config)?;
     dir.start_metrics(&state.history, state.iteration)?;
     let mut lp = Loop::new(config, &mut state)?;
@@ -137,17 +139,10 @@ fn run_networks<A: Imitate, C: ValueNet>(
     finish(&state, config, &dir, &lp.arch)
 }
 
-/// The run state to train from: the latest checkpoint (`--resume`), or a fresh one (refused
-/// where `out` holds a run) initialised from the seed, then from `--init-actor` or by the
-/// warm start.
-fn start<A: Imitate, C: ValueNet>(
-    config: &TrainConfig,
-    options: &RunOptions,
-    dir: &RunDir,
-) -> Result<RunState<A, C>, TrainError> {
-    let arch = config.architecture()?;
-    // Refuse a run that cannot fit in memory before anything is allocated.
-    crate::memory::check(config, &arch)?;
+/// Refuses, before anything is allocated or written, a run that cannot fit in memory or whose
+/// opponents (the curriculum's included) cannot be read.
+fn refuse_unstartable(config: &TrainConfig) -> Result<(), TrainError> {
+    crate::memory::check(config, &config.architecture()?)?;
     // Refuse an unreadable opponent, the curriculum's included, before any work.
     VecEnv::new(EnvConfig {
         num_envs: 1,
@@ -160,6 +155,18 @@ fn start<A: Imitate, C: ValueNet>(
             ..config.env_config(0)
         })?;
     }
+    Ok(())
+}
+
+/// The run state to train from: the latest checkpoint (`--resume`), or a fresh one (refused
+/// where `out` holds a run) initialised from the seed, then from `--init-actor` or by the
+/// warm start.
+fn start<A: Imitate, C: ValueNet>(
+    config: &TrainConfig,
+    options: &RunOptions,
+    dir: &RunDir,
+) -> Result<RunState<A, C>, TrainError> {
+    let arch = config.architecture()?;
     let device = options.device.clone();
     if options.resume {
         return dir.load_checkpoint(config, &arch, &device);
