@@ -617,6 +617,19 @@ fn another_seed_from_the_command_line_is_recorded_and_resumes() {
     );
 }
 
+/// `config` stopped after iteration 2 and resumed (into `tmp(name)`) ends where the
+/// uninterrupted run in `whole` did: the same networks, bit for bit, and learning record.
+fn assert_stopped_and_resumed_is(config: &TrainConfig, whole: &Path, name: &str) {
+    let stopped = tmp(name);
+    run(config, &options(&stopped, false, Some(2))).unwrap();
+    run(config, &options(&stopped, true, None)).unwrap();
+    let device = Device::flex().autodiff();
+    let nets = |d: &Path| checkpoint_blob(config, d, &device).unwrap().1;
+    assert!(nets(whole) == nets(&stopped), "{name}: the networks differ");
+    assert_eq!(learning_record(whole), learning_record(&stopped), "{name}");
+    let _ = std::fs::remove_dir_all(stopped);
+}
+
 /// A tiny row-G race (4 iterations of 16 envs × 20 steps, checkpoints every 2) against
 /// `opponent`.
 fn tiny_race(opponent: &str) -> TrainConfig {
@@ -656,14 +669,8 @@ fn an_opponent_curriculum_changes_the_opponent_at_its_iteration_and_resumes_bit_
     assert_eq!(a[..2], b[..2], "the first stage races stage1.blob in both");
     assert_ne!(a[2], b[2], "the third iteration races stage1_guarded.blob");
 
-    let stopped = tmp("curriculum-stopped");
-    run(&curriculum, &options(&stopped, false, Some(2))).unwrap();
-    run(&curriculum, &options(&stopped, true, None)).unwrap();
-    let device = Device::flex().autodiff();
-    let nets = |d: &Path| checkpoint_blob(&curriculum, d, &device).unwrap().1;
-    assert!(nets(&whole) == nets(&stopped), "the networks differ");
-    assert_eq!(learning_record(&whole), learning_record(&stopped));
-    for d in [whole, longer, stopped] {
+    assert_stopped_and_resumed_is(&curriculum, &whole, "curriculum-stopped");
+    for d in [whole, longer] {
         let _ = std::fs::remove_dir_all(d);
     }
 }
@@ -740,14 +747,8 @@ fn a_randomisation_ramp_starts_at_its_iteration_and_resumes_bit_for_bit() {
     assert_eq!(a[..2], b[..2], "iterations 0 and 1 randomise nothing");
     assert_ne!(a[2], b[2], "iteration 2 randomises half the spawns");
 
-    let stopped = tmp("ramp-stopped");
-    run(&ramp, &options(&stopped, false, Some(2))).unwrap();
-    run(&ramp, &options(&stopped, true, None)).unwrap();
-    let device = Device::flex().autodiff();
-    let nets = |d: &Path| checkpoint_blob(&ramp, d, &device).unwrap().1;
-    assert!(nets(&whole) == nets(&stopped), "the networks differ");
-    assert_eq!(learning_record(&whole), learning_record(&stopped));
-    for d in [whole, nominal, stopped] {
+    assert_stopped_and_resumed_is(&ramp, &whole, "ramp-stopped");
+    for d in [whole, nominal] {
         let _ = std::fs::remove_dir_all(d);
     }
 }
