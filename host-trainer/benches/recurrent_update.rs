@@ -8,6 +8,9 @@
 //! - `g_256x100_fused` and `g_64x100_fused`: the fused update ([`host_trainer::fused`]) on
 //!   the same batch, the whole window and a quarter of the envs (a minibatch of a 256-env
 //!   run with 4 minibatches);
+//! - `g_64x100_privileged_fused`: `g_64x100_fused` with a privileged MLP critic instead of
+//!   the LSTM one (issue "lstm-speed", item 5): the actor's windows shared between two
+//!   copies of it on two threads, the light critic on a third;
 //! - `prepare_256x100_{burn,fused}`: the batch's forward pass over the whole rollout (old
 //!   means, values, bootstrap, the critic's next states);
 //! - `sgemm_peak/1024_{one,two}_thread(s)`: what `matrixmultiply`'s sgemm, the fused
@@ -22,8 +25,9 @@ use criterion::{Criterion, Throughput, criterion_group, criterion_main};
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::config::{TrainConfig, UpdateKind};
 use host_trainer::fused::FusedLearner;
+use host_trainer::model::PrivilegedCritic;
 use host_trainer::nets::{PolicyNet, ValueNet};
-use host_trainer::ppo::RecurrentLearner;
+use host_trainer::ppo::{Learner, RecurrentLearner};
 use host_trainer::recurrent::{RecurrentActor, RecurrentCritic};
 use host_trainer::rng::init_rng;
 use host_trainer::rollout::Rollout;
@@ -77,6 +81,37 @@ fn update(c: &mut Criterion) {
     g.throughput(Throughput::Elements((SEQUENCES / 4 * STEPS) as u64));
     g.bench_function("g_64x100_fused", |b| {
         b.iter(|| fused.train_minibatch(&batch, &envs[..SEQUENCES / 4], &p, &mut lr, true, true))
+    });
+    // The same minibatch beside a privileged MLP critic (`[ppo] critic = "privileged-mlp"`):
+    // the actor's windows shared between two copies on two threads, the critic on a third.
+    let mut privileged_rollout = rollout();
+    let pdim = PrivilegedCritic::input_dim(&arch);
+    let mut prng = ChaCha8Rng::seed_from_u64(1);
+    let mut draw =
+        |n: usize| -> Vec<f32> { (0..n).map(|_| prng.random_range(-1.0..1.0)).collect() };
+    privileged_rollout.privileged_dim = pdim;
+    privileged_rollout.privileged = draw(SEQUENCES * STEPS * pdim);
+    privileged_rollout.last_privileged = draw(SEQUENCES * pdim);
+    let device = Device::flex().autodiff();
+    let privileged = Learner::new(
+        learner.actor.clone(),
+        PrivilegedCritic::fresh(&arch, &mut init_rng(2), &device),
+        1e-5,
+        device,
+    );
+    let privileged_batch = privileged.prepare(&privileged_rollout, &p);
+    let mut fused = FusedLearner::recurrent_privileged(&privileged.actor, &privileged.critic, None);
+    g.bench_function("g_64x100_privileged_fused", |b| {
+        b.iter(|| {
+            fused.train_minibatch(
+                &privileged_batch,
+                &envs[..SEQUENCES / 4],
+                &p,
+                &mut lr,
+                true,
+                true,
+            )
+        })
     });
     g.throughput(Throughput::Elements((SEQUENCES * STEPS) as u64));
     let r = rollout();

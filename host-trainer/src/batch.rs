@@ -34,6 +34,21 @@ pub struct Batch {
     pub advantages: Vec<f32>,
     /// Recurrent networks: the windows (`None` for feed-forward ones).
     pub sequence: Option<Sequences>,
+    /// A privileged critic's inputs (`[ppo] critic = "privileged-mlp"`); `None` when the
+    /// critic sees the actor's observations.
+    pub critic: Option<CriticInputs>,
+}
+
+/// What a privileged critic sees ([`crate::model::PrivilegedCritic`]): the env's privileged
+/// state (`sitl::env::VecEnv::privileged_observations`) per sample and after the window.
+#[derive(Clone, Debug, Default)]
+pub struct CriticInputs {
+    /// Values per state.
+    pub dim: usize,
+    /// One row per sample (the batch's order).
+    pub obs: Vec<f32>,
+    /// One row per env: the states after the window (for the bootstrap).
+    pub last_obs: Vec<f32>,
 }
 
 impl Batch {

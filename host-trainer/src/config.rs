@@ -495,6 +495,34 @@ pub struct PpoConfig {
     /// configs written before it existed keep their hash.)
     #[serde(default, skip_serializing_if = "UpdateKind::is_default")]
     pub update: UpdateKind,
+    /// What the value function is: `"actor-shaped"` (default), the actor's architecture on
+    /// the actor's observation (the paper's, and RSL-RL's); or `"privileged-mlp"`, an MLP of
+    /// the row's head widths on the env's privileged state (`VecEnv::privileged_observations`:
+    /// the noise-free observation, the episode's randomised airframe and latency, its time
+    /// left). The critic trains beside the actor and is never deployed, so the exported
+    /// actor is the same kind of network either way; for a recurrent row the critic then
+    /// carries no state and costs a fraction of the LSTM critic (issue "lstm-speed", item 5).
+    /// (Left out of the canonical TOML at its default.)
+    #[serde(default, skip_serializing_if = "CriticKind::is_default")]
+    pub critic: CriticKind,
+}
+
+/// The value function PPO trains ([`PpoConfig::critic`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CriticKind {
+    /// The actor's architecture with one output, on the actor's observation.
+    #[default]
+    ActorShaped,
+    /// A feed-forward MLP on the env's privileged state.
+    PrivilegedMlp,
+}
+
+impl CriticKind {
+    /// The default (for `skip_serializing_if`).
+    pub fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
 }
 
 /// Which implementation takes the PPO steps.

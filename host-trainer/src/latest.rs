@@ -2,10 +2,10 @@
 //! diagnostics on a run's networks), as an actor (for checking a resume), or as a blob with
 //! the run's provenance (`host-trainer export` of a run that has not finished).
 
-use crate::config::TrainConfig;
+use crate::config::{CriticKind, TrainConfig};
 use crate::error::TrainError;
 use crate::export::actor_blob;
-use crate::model::{Actor, Critic};
+use crate::model::{Actor, Critic, PrivilegedCritic};
 use crate::nets::{PolicyNet, ValueNet};
 use crate::ppo::Learner;
 use crate::recurrent::{RecurrentActor, RecurrentCritic};
@@ -15,12 +15,18 @@ use firmware_core::policy::Architecture;
 use std::path::Path;
 
 /// The learner (actor, critic, Adam states, learning rate) of the latest checkpoint in `out`
-/// and its iteration (for diagnostics on a run's networks).
+/// and its iteration (for diagnostics on a run's feed-forward networks with the actor-shaped
+/// critic).
 pub fn checkpoint_learner(
     config: &TrainConfig,
     out: &Path,
     device: &Device,
 ) -> Result<(u32, Learner), TrainError> {
+    if config.ppo.critic != CriticKind::ActorShaped {
+        return Err(TrainError::Config(
+            "checkpoint_learner reads runs whose critic is actor-shaped (ppo.critic)".into(),
+        ));
+    }
     let arch = config.architecture()?;
     let state = RunDir::new(out).load_checkpoint::<Actor, Critic>(config, &arch, device)?;
     Ok((state.iteration, state.learner))
@@ -47,10 +53,17 @@ pub fn checkpoint_blob(
     }
     let arch = config.architecture()?;
     let dir = RunDir::new(out);
-    if arch.is_recurrent() {
-        latest::<RecurrentActor, RecurrentCritic>(&dir, config, &arch, device)
-    } else {
-        latest::<Actor, Critic>(&dir, config, &arch, device)
+    match (arch.is_recurrent(), config.ppo.critic) {
+        (true, CriticKind::ActorShaped) => {
+            latest::<RecurrentActor, RecurrentCritic>(&dir, config, &arch, device)
+        }
+        (true, CriticKind::PrivilegedMlp) => {
+            latest::<RecurrentActor, PrivilegedCritic>(&dir, config, &arch, device)
+        }
+        (false, CriticKind::ActorShaped) => latest::<Actor, Critic>(&dir, config, &arch, device),
+        (false, CriticKind::PrivilegedMlp) => {
+            latest::<Actor, PrivilegedCritic>(&dir, config, &arch, device)
+        }
     }
 }
 

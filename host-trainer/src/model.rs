@@ -293,3 +293,66 @@ impl ValueNet for Critic {
 }
 
 mlp_ppo_net!(Critic);
+
+/// A value function on the env's privileged state (`[ppo] critic = "privileged-mlp"`): an
+/// MLP with the row's head widths and one output, whose input is the batch's
+/// [`crate::batch::CriticInputs`] (the noise-free observation, the episode's randomised
+/// airframe and latency, its time left: `sitl::env::VecEnv::privileged_observations`). It
+/// carries no state, so beside a recurrent actor its minibatches are the actor's windows and
+/// it reads their samples one by one. It is never deployed.
+#[derive(Module, Debug)]
+pub struct PrivilegedCritic {
+    /// Value network.
+    pub mlp: Mlp,
+}
+
+impl PrivilegedCritic {
+    /// The critic's input width for `arch`: its observation and the privileged extras.
+    pub fn input_dim(arch: &Architecture) -> usize {
+        usize::from(arch.obs_dim) + sitl::env::PRIVILEGED_EXTRA
+    }
+}
+
+impl PpoNet for PrivilegedCritic {
+    const RECURRENT: bool = false;
+
+    /// Zeros when the batch holds no privileged state (a rollout that did not record it).
+    fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
+        let Some(c) = &b.critic else {
+            return Tensor::zeros([mb.samples.len(), 1], device);
+        };
+        self.mlp
+            .forward(tensor2(gather(&c.obs, c.dim, &mb.samples), c.dim, device))
+    }
+
+    fn rollout_outputs(
+        &self,
+        b: &Batch,
+        last: Option<&[f32]>,
+        device: &Device,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let Some(c) = &b.critic else {
+            return (vec![0.0; b.len()], Vec::new(), Vec::new());
+        };
+        let all = values(self.mlp.forward(tensor2(c.obs.clone(), c.dim, device)));
+        let last = match last {
+            Some(_) => values(self.mlp.forward(tensor2(c.last_obs.clone(), c.dim, device))),
+            None => Vec::new(),
+        };
+        (all, last, Vec::new())
+    }
+}
+
+impl ValueNet for PrivilegedCritic {
+    /// The head widths of `arch` (its MLP layers: the whole network of a feed-forward row)
+    /// on [`PrivilegedCritic::input_dim`], one output.
+    fn fresh(arch: &Architecture, rng: &mut ChaCha8Rng, device: &Device) -> Self {
+        let sizes: Vec<usize> = core::iter::once(Self::input_dim(arch))
+            .chain(arch.mlp_hidden.iter().map(|&w| usize::from(w)))
+            .chain(core::iter::once(1))
+            .collect();
+        Self {
+            mlp: Mlp::new(&sizes, rng, device),
+        }
+    }
+}

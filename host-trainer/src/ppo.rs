@@ -32,11 +32,13 @@
 //! episode end, and the gradients flow back through the window (truncated backpropagation
 //! through time over `steps_per_env` steps).
 
-use crate::batch::{Batch, LN_2PI, Minibatch, Sequences, gae, gather, gaussian_log_prob, tensor2};
+use crate::batch::{
+    Batch, CriticInputs, LN_2PI, Minibatch, Sequences, gae, gather, gaussian_log_prob, tensor2,
+};
 use crate::config::{PpoConfig, UpdateKind};
 use crate::fused::{FusedLearner, FusedOptim, RolloutOutputs};
 use crate::grads::{flatten_gradients, scale, squared_norm};
-use crate::model::{Actor, Critic, values};
+use crate::model::{Actor, Critic, PrivilegedCritic, values};
 use crate::nets::{PolicyNet, PpoNet};
 use crate::recurrent::{RecurrentActor, RecurrentCritic};
 use crate::rollout::Rollout;
@@ -131,6 +133,11 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
             returns: Vec::new(),
             advantages: Vec::new(),
             sequence: Self::RECURRENT.then(|| Sequences::of(r)),
+            critic: (r.privileged_dim != 0).then(|| CriticInputs {
+                dim: r.privileged_dim,
+                obs: r.privileged.clone(),
+                last_obs: r.last_privileged.clone(),
+            }),
         };
         let (old_mean, old_values, last_values, critic_next) =
             match self.fused_outputs(&batch, &r.last_obs, p) {
@@ -209,18 +216,7 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
         if p.update.resolve(Self::RECURRENT) != UpdateKind::Fused {
             return None;
         }
-        let mut fused = self.fused_learner(None)?;
-        Some(if fused.is_recurrent() {
-            fused.window_outputs(batch, last_obs)
-        } else {
-            let (mean, values, last_values) = fused.rollout_outputs(&batch.obs, last_obs);
-            RolloutOutputs {
-                mean,
-                values,
-                last_values,
-                critic_next: Vec::new(),
-            }
-        })
+        Some(self.fused_learner(None)?.batch_outputs(batch, last_obs))
     }
 
     /// The fused update's copy of these networks with Adam's state `optim` (`None` for
@@ -230,8 +226,16 @@ impl<A: PolicyNet, C: PpoNet> Learner<A, C> {
         if let Some(l) = this.downcast_ref::<Learner<Actor, Critic>>() {
             return Some(FusedLearner::new(&l.actor, &l.critic, optim));
         }
-        let l = this.downcast_ref::<RecurrentLearner>()?;
-        Some(FusedLearner::recurrent(&l.actor, &l.critic, optim))
+        if let Some(l) = this.downcast_ref::<RecurrentLearner>() {
+            return Some(FusedLearner::recurrent(&l.actor, &l.critic, optim));
+        }
+        if let Some(l) = this.downcast_ref::<Learner<Actor, PrivilegedCritic>>() {
+            return Some(FusedLearner::privileged(&l.actor, &l.critic, optim));
+        }
+        let l = this.downcast_ref::<Learner<RecurrentActor, PrivilegedCritic>>()?;
+        Some(FusedLearner::recurrent_privileged(
+            &l.actor, &l.critic, optim,
+        ))
     }
 
     /// The fused update's copy of these networks, Adam's state moved into it (`None`, the

@@ -38,6 +38,14 @@ pub struct Rollout {
     pub timeouts: Vec<bool>,
     /// Observations after the last step, `envs × obs_dim`.
     pub last_obs: Vec<f32>,
+    /// Values per privileged state when the rollout records them for a privileged critic
+    /// (`sitl::env::VecEnv::privileged_dim`); 0: not recorded.
+    pub privileged_dim: usize,
+    /// The env's privileged states at the start of each step, `steps × envs ×
+    /// privileged_dim` (empty when not recorded).
+    pub privileged: Vec<f32>,
+    /// The privileged states after the last step, `envs × privileged_dim`.
+    pub last_privileged: Vec<f32>,
     /// Recurrent policies: the actor's state in every env when the window began, flat
     /// (`envs × width`, see [`crate::recurrent::LstmState::from_flat`]); empty for a feed-forward policy.
     pub actor_h0: Vec<f32>,
@@ -72,6 +80,8 @@ impl Rollout {
         self.dones.clear();
         self.timeouts.clear();
         self.last_obs.clear();
+        self.privileged.clear();
+        self.last_privileged.clear();
         self.actor_h0.clear();
     }
 }
@@ -109,12 +119,24 @@ pub fn collect_rollout(
             push_flat_state(s, &mut rollout.actor_h0);
         }
     }
+    if rollout.privileged_dim != 0 && rollout.privileged_dim != env.privileged_dim() {
+        return Err(TrainError::Rollout(format!(
+            "the critic observes {} privileged values, the environment gives {}",
+            rollout.privileged_dim,
+            env.privileged_dim()
+        )));
+    }
+    let mut privileged = Vec::new();
     let mut actions = vec![0.0f32; n * ACTION_DIM];
     let mut noise = vec![0.0f32; n * ACTION_DIM];
     let refused = std::sync::atomic::AtomicUsize::new(0);
     for _ in 0..steps {
         let obs = env.observations();
         rollout.obs.extend_from_slice(obs);
+        if rollout.privileged_dim != 0 {
+            env.privileged_observations(&mut privileged);
+            rollout.privileged.extend_from_slice(&privileged);
+        }
         for z in &mut noise {
             *z = normal(noise_rng);
         }
@@ -186,6 +208,10 @@ pub fn collect_rollout(
         on_step(env.rewards(), env.dones());
     }
     rollout.last_obs.extend_from_slice(env.observations());
+    if rollout.privileged_dim != 0 {
+        env.privileged_observations(&mut privileged);
+        rollout.last_privileged.extend_from_slice(&privileged);
+    }
     Ok(())
 }
 

@@ -4,14 +4,14 @@
 //! ([`crate::export`]). [`run`] reads top to bottom: `start`, then `iteration` after
 //! iteration, each followed by `evaluate` and the bookkeeping, then `finish`.
 
-use crate::config::{PpoConfig, TrainConfig};
+use crate::config::{CriticKind, PpoConfig, TrainConfig};
 use crate::error::TrainError;
 use crate::evaluation::{best_evaluation, keep_best_prefers, referee_eval, selection_eval};
 use crate::export::{actor_blob, actor_from_blob, actor_safetensors, actor_transplanted_from};
 use crate::guard::guard_update;
 use crate::imitation::Imitate;
 use crate::metrics::{Console, IterationMetrics, lap_text};
-use crate::model::{Actor, Critic};
+use crate::model::{Actor, Critic, PrivilegedCritic};
 use crate::nets::{PolicyNet, ValueNet};
 use crate::ppo::Learner;
 use crate::recurrent::{RecurrentActor, RecurrentCritic};
@@ -82,10 +82,18 @@ pub struct RunSummary {
 /// Runs (or resumes) the training run of `config` into `options.out`: PPO on the
 /// feed-forward networks of rows A-D, recurrent PPO on the LSTM networks of rows E-G.
 pub fn run(config: &TrainConfig, options: &RunOptions) -> Result<RunSummary, TrainError> {
-    if config.architecture()?.is_recurrent() {
-        run_networks::<RecurrentActor, RecurrentCritic>(config, options)
-    } else {
-        run_networks::<Actor, Critic>(config, options)
+    let recurrent = config.architecture()?.is_recurrent();
+    match (recurrent, config.ppo.critic) {
+        (true, CriticKind::ActorShaped) => {
+            run_networks::<RecurrentActor, RecurrentCritic>(config, options)
+        }
+        (true, CriticKind::PrivilegedMlp) => {
+            run_networks::<RecurrentActor, PrivilegedCritic>(config, options)
+        }
+        (false, CriticKind::ActorShaped) => run_networks::<Actor, Critic>(config, options),
+        (false, CriticKind::PrivilegedMlp) => {
+            run_networks::<Actor, PrivilegedCritic>(config, options)
+        }
     }
 }
 
@@ -294,6 +302,9 @@ impl Loop {
             ..config.env_config(env_seed)
         })?;
         let mut rollout = Rollout::new(env.num_envs(), env.obs_dim());
+        if config.ppo.critic == CriticKind::PrivilegedMlp {
+            rollout.privileged_dim = env.privileged_dim();
+        }
         let mut episodes = EpisodeLog::new(env.num_envs());
         let arch = config.architecture()?;
         match state.resumed_loop.take() {

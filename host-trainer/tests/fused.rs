@@ -29,16 +29,7 @@ fn learner(seed: u64) -> Learner {
 }
 
 fn params() -> PpoConfig {
-    PpoConfig {
-        epochs: 2,
-        minibatches: 2,
-        value_coef: 0.7,
-        entropy_coef: 0.01,
-        learning_rate: 1e-4,
-        desired_kl: Some(0.01),
-        update: UpdateKind::Fused,
-        ..PpoConfig::default()
-    }
+    fused_common::params(UpdateKind::Fused)
 }
 
 /// A batch of `n` random samples whose old log-probabilities and values are the networks'
@@ -83,6 +74,7 @@ fn batch(l: &Learner, n: usize, seed: u64) -> Batch {
         returns,
         advantages,
         sequence: None,
+        critic: None,
     }
 }
 

@@ -17,7 +17,9 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 mod fused_common;
-use fused_common::{assert_networks_close, assert_stats_close, flat, relative_error};
+use fused_common::{
+    assert_networks_close, assert_stats_close, clip_crossing_batch, flat, params, relative_error,
+};
 
 const ROWS: [TableRow; 3] = [TableRow::E, TableRow::F, TableRow::G];
 
@@ -28,19 +30,6 @@ fn learner(row: TableRow, seed: u64) -> RecurrentLearner {
     let actor = RecurrentActor::fresh(&arch, 0.6, &mut rng, &device);
     let critic = RecurrentCritic::fresh(&arch, &mut rng, &device);
     RecurrentLearner::new(actor, critic, 1e-4, device)
-}
-
-fn params(update: UpdateKind) -> PpoConfig {
-    PpoConfig {
-        epochs: 2,
-        minibatches: 2,
-        value_coef: 0.7,
-        entropy_coef: 0.01,
-        learning_rate: 1e-4,
-        desired_kl: Some(0.01),
-        update,
-        ..PpoConfig::default()
-    }
 }
 
 /// A random rollout of `envs × steps` with episode ends inside the windows (about one in
@@ -64,18 +53,8 @@ fn rollout(l: &RecurrentLearner, row: TableRow, envs: usize, steps: usize, seed:
     out
 }
 
-/// The batch `burn` builds from `rollout`, its old log-probabilities and values perturbed
-/// so that a share of the ratios and of the values starts outside the clip range.
 fn batch(l: &RecurrentLearner, r: &Rollout, seed: u64) -> Batch {
-    let mut b = l.prepare(r, &params(UpdateKind::Burn));
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    for lp in &mut b.old_log_prob {
-        *lp += rng.random_range(-0.5..0.5);
-    }
-    for v in &mut b.old_values {
-        *v += rng.random_range(-0.5..0.5);
-    }
-    b
+    clip_crossing_batch(l, r, seed)
 }
 
 /// Per-tensor spans of a recurrent network's flat parameters in `burn`'s order.

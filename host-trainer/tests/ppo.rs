@@ -5,7 +5,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use firmware_core::policy::{Architecture, TableRow};
 use host_trainer::batch::{Batch, gae, gaussian_log_prob};
-use host_trainer::config::{PpoConfig, UpdateKind};
+use host_trainer::config::{CriticKind, PpoConfig, UpdateKind};
 use host_trainer::model::{Actor, Critic, values};
 use host_trainer::nets::{PolicyNet, ValueNet};
 use host_trainer::ppo::Learner;
@@ -35,6 +35,7 @@ fn params() -> PpoConfig {
         init_std: 0.5,
         init_hover: false,
         update: UpdateKind::Fused,
+        critic: CriticKind::ActorShaped,
     }
 }
 
@@ -79,6 +80,7 @@ fn an_update_moves_the_mean_toward_positive_advantages() {
         returns: vec![0.0; n],
         advantages,
         sequence: None,
+        critic: None,
     };
     // The diagnostic gradient (examples/gradient_snr.rs): one value per actor parameter
     // (the blob's weights and the four log σ), and a plain step along it moves motor 0 the
@@ -198,6 +200,7 @@ fn parallel_passes_equal_sequential_passes() {
         returns: f(n, 0.5),
         advantages: f(n, 2.0),
         sequence: None,
+        critic: None,
     };
     let idx: Vec<usize> = (0..n).collect();
     let mut p = params();
@@ -243,6 +246,7 @@ fn a_nan_minibatch_changes_nothing() {
         returns: vec![0.1; n],
         advantages,
         sequence: None,
+        critic: None,
     };
     let before = learner.actor.payload();
     let idx: Vec<usize> = (0..n).collect();
@@ -287,6 +291,7 @@ fn the_std_ceiling_holds_against_the_entropy_bonus() {
             returns: vec![0.0; n],
             advantages: vec![0.0; n],
             sequence: None,
+            critic: None,
         };
         let p = PpoConfig {
             entropy_coef: 1.0,

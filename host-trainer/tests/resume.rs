@@ -753,6 +753,31 @@ fn a_randomisation_ramp_starts_at_its_iteration_and_resumes_bit_for_bit() {
     }
 }
 
+/// `[ppo] critic = "privileged-mlp"` on a row-G race (fused update, the actor's windows
+/// shared between two threads): the run trains, its critic learns from the privileged state
+/// (another record than the LSTM critic's run), and a run stopped and resumed is the
+/// uninterrupted one bit for bit (the critic's checkpoint and Adam state round-trip).
+#[test]
+fn a_privileged_critic_run_resumes_bit_for_bit() {
+    let mut lstm = tiny_race("../policies/stage1.blob");
+    lstm.ppo.update = host_trainer::config::UpdateKind::Fused;
+    let mut privileged = lstm.clone();
+    privileged.ppo.critic = host_trainer::config::CriticKind::PrivilegedMlp;
+    let privileged = TrainConfig::parse(&toml::to_string(&privileged).unwrap()).unwrap();
+    assert_ne!(privileged.hash(), lstm.hash());
+    let whole = tmp("privileged-whole");
+    run(&privileged, &options(&whole, false, None)).unwrap();
+    let with_lstm = tmp("privileged-lstm");
+    run(&lstm, &options(&with_lstm, false, None)).unwrap();
+    let (a, b) = (learning_record(&whole), learning_record(&with_lstm));
+    assert_eq!(a.len(), 4);
+    assert_ne!(a, b, "the critic made no difference");
+    assert_stopped_and_resumed_is(&privileged, &whole, "privileged-stopped");
+    for d in [whole, with_lstm] {
+        let _ = std::fs::remove_dir_all(d);
+    }
+}
+
 /// Issue "faults": a second trainer on a run directory that a trainer is writing (a
 /// `--resume` typed while the run still goes) is refused with the holder named, and writes
 /// nothing: the running trainer's metrics and checkpoints stay whole. Once the lock is

@@ -1046,6 +1046,57 @@ fn a_share_of_the_spawns_is_randomised() {
     assert!(json.get("randomize_share").is_none(), "{json}");
 }
 
+/// The privileged state: the observation without the sensor noise, then the episode's
+/// draws (thrust, mass and inertia as ratios minus 1, the motor lag in 10 ms, the latency in
+/// steps) and the share of its time left.
+#[test]
+fn the_privileged_state_is_the_true_observation_and_the_draws() {
+    use sitl::env::PRIVILEGED_EXTRA;
+    use sitl::perturb::PerturbSpec;
+    let mut env = VecEnv::time_trial(EnvConfig {
+        randomize: Some(
+            PerturbSpec::parse("thrust=1.05,mass=0.9,inertia=1.2,motor-tau-ms=20,latency=1")
+                .unwrap(),
+        ),
+        ..config(4)
+    });
+    let (d, p) = (env.obs_dim(), env.privileged_dim());
+    assert_eq!(p, d + PRIVILEGED_EXTRA);
+    let mut state = Vec::new();
+    env.privileged_observations(&mut state);
+    assert_eq!(state.len(), 4 * p);
+    let max = env.max_episode_steps() as f32;
+    for (row, obs) in state
+        .chunks_exact(p)
+        .zip(env.observations().chunks_exact(d))
+    {
+        // No sensor noise drawn: the observation itself.
+        assert_eq!(&row[..d], obs);
+        let extra = &row[d..];
+        for (got, want) in extra.iter().zip([0.05, -0.1, 0.2, 2.0, 1.0, 1.0]) {
+            assert!((got - want).abs() < 1e-5, "{extra:?}");
+        }
+    }
+    env.step(&[0.5; 16]).unwrap();
+    env.privileged_observations(&mut state);
+    let left = state[p - 1];
+    assert!((left - (1.0 - 1.0 / max)).abs() < 1e-6, "{left}");
+    // Sensor noise: the observation is noisy, the privileged state is not.
+    let noisy = VecEnv::time_trial(EnvConfig {
+        randomize: Some(PerturbSpec::parse("noise=3").unwrap()),
+        ..config(4)
+    });
+    let clean = VecEnv::time_trial(config(4));
+    noisy.privileged_observations(&mut state);
+    let mut nominal = Vec::new();
+    clean.privileged_observations(&mut nominal);
+    assert_eq!(state, nominal);
+    assert_ne!(noisy.observations(), clean.observations());
+    for row in nominal.chunks_exact(p) {
+        assert_eq!(&row[d..d + 5], &[0.0; 5]);
+    }
+}
+
 /// `race.ego_ahead_fraction` swaps the stage-2 spawn's places: at 1 every ego starts 1 m
 /// ahead of its opponent (the opponent at (−1, 0, 0) m in the ego's frame), at 0 (the paper's)
 /// 1 m behind, at 0.5 some of each; a share outside [0, 1] is refused with the field named.

@@ -3,8 +3,8 @@
 //! [`TrainConfig::ours`] (`host-trainer/tests/config.rs` holds each equal to its TOML file).
 
 use super::{
-    KeepBestBy, PassDecay, PpoConfig, RunConfig, Selection, StdDecay, TrainConfig, UpdateKind,
-    WarmStart, default_eval_every, default_eval_races, default_max_learning_rate,
+    CriticKind, KeepBestBy, PassDecay, PpoConfig, RunConfig, Selection, StdDecay, TrainConfig,
+    UpdateKind, WarmStart, default_eval_every, default_eval_races, default_max_learning_rate,
     default_min_learning_rate, one,
 };
 use sitl::env::EnvConfig;
@@ -145,6 +145,7 @@ impl Default for PpoConfig {
             init_std: 1.0,
             init_hover: false,
             update: UpdateKind::Auto,
+            critic: CriticKind::ActorShaped,
         }
     }
 }

@@ -18,14 +18,50 @@ pub(super) struct ActorStats {
 /// The actor's pass: clipped surrogate, entropy bonus, KL before the step; gradients into
 /// `side.grad` (log σ's last).
 pub(super) fn actor_pass(side: &mut Side, b: &Batch, mb: &Minibatch, p: &PpoConfig) -> ActorStats {
-    let samples = mb.samples.len().max(1);
+    let n = mb.samples.len().max(1);
+    let sums = actor_pass_part(side, b, mb, p, n);
+    finish_actor_pass(side, p, sums, n)
+}
+
+/// What a part of a minibatch adds to the actor's statistics (before they are divided by the
+/// minibatch's size).
+#[derive(Clone, Copy, Debug, Default)]
+pub(super) struct ActorSums {
+    surrogate: f64,
+    kl: f64,
+    clipped: usize,
+    sum_log_std: f32,
+}
+
+impl ActorSums {
+    /// The sums of two parts.
+    pub(super) fn plus(self, other: Self) -> Self {
+        Self {
+            surrogate: self.surrogate + other.surrogate,
+            kl: self.kl + other.kl,
+            clipped: self.clipped + other.clipped,
+            sum_log_std: self.sum_log_std,
+        }
+    }
+}
+
+/// The actor's pass over `mb`, a part of a minibatch of `of` samples (the whole of it, or
+/// one thread's share of its windows): the surrogate's gradients scaled for `of` samples
+/// into `side.grad`, log σ's without the entropy bonus ([`finish_actor_pass`] adds it once).
+pub(super) fn actor_pass_part(
+    side: &mut Side,
+    b: &Batch,
+    mb: &Minibatch,
+    p: &PpoConfig,
+    of: usize,
+) -> ActorSums {
     let ls_at = side.net.mlp_len();
     let log_std: [f32; ACTION_DIM] = core::array::from_fn(|k| side.net.params[ls_at + k]);
     let inv_std = log_std.map(|l| (-l).exp());
     let std_now = log_std.map(f32::exp);
     let sum_log_std: f32 = log_std.iter().sum();
     let norm_const = 0.5 * LN_2PI * ACTION_DIM as f32;
-    let inv_n = 1.0 / samples as f32;
+    let inv_n = 1.0 / of.max(1) as f32;
     let (lo, hi) = (1.0 - p.clip, 1.0 + p.clip);
     let mut kl = 0.0f64;
     let mut surrogate = 0.0f64;
@@ -68,14 +104,34 @@ pub(super) fn actor_pass(side: &mut Side, b: &Batch, mb: &Minibatch, p: &PpoConf
         }
     });
     for (g, d) in side.grad[ls_at..].iter_mut().zip(d_log_std) {
-        *g = d as f32 - p.entropy_coef;
+        *g = d as f32;
     }
-    let n = samples as f64;
+    ActorSums {
+        surrogate,
+        kl,
+        clipped: clipped_count,
+        sum_log_std,
+    }
+}
+
+/// The entropy bonus's gradient on log σ and the statistics of a minibatch of `n` samples
+/// whose parts summed to `sums`.
+pub(super) fn finish_actor_pass(
+    side: &mut Side,
+    p: &PpoConfig,
+    sums: ActorSums,
+    n: usize,
+) -> ActorStats {
+    let ls_at = side.net.mlp_len();
+    for g in &mut side.grad[ls_at..] {
+        *g -= p.entropy_coef;
+    }
+    let n = n.max(1) as f64;
     ActorStats {
-        surrogate: surrogate / n,
-        entropy: f64::from(sum_log_std + 0.5 * (1.0 + LN_2PI) * ACTION_DIM as f32),
-        kl: kl / n,
-        clip_fraction: clipped_count as f64 / n,
+        surrogate: sums.surrogate / n,
+        entropy: f64::from(sums.sum_log_std + 0.5 * (1.0 + LN_2PI) * ACTION_DIM as f32),
+        kl: sums.kl / n,
+        clip_fraction: sums.clipped as f64 / n,
     }
 }
 

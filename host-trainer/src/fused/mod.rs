@@ -24,10 +24,14 @@
 //!
 //! **Threads.** As in the `burn` path, the actor's and the critic's passes run on two
 //! threads; the gradients are clipped together by their global norm, then each network
-//! takes its Adam step.
+//! takes its Adam step. Beside a privileged MLP critic, a fraction of a recurrent actor's
+//! cost, a recurrent actor's minibatch is shared instead: half its windows on a second
+//! copy of the actor ([`FusedLearner::recurrent_privileged`]), the gradients summed, the
+//! critic on a third thread.
 //!
-//! The `burn` modules stay the networks of record: [`FusedLearner::new`] and
-//! [`FusedLearner::recurrent`] copy their parameters in, [`FusedLearner::write_to`] copies
+//! The `burn` modules stay the networks of record: [`FusedLearner::new`],
+//! [`FusedLearner::recurrent`] and the privileged critic's constructors copy their
+//! parameters in, [`FusedLearner::write_to`] copies
 //! them back, so checkpoints, export, evaluation and the guard see `burn` modules as
 //! before. Adam's moments live in [`FusedOptim`], which the learner keeps between updates
 //! and the checkpoint saves.
@@ -39,13 +43,13 @@ mod net;
 
 use crate::batch::{Batch, Minibatch};
 use crate::config::PpoConfig;
-use crate::model::{Actor, Critic};
+use crate::model::{Actor, Critic, Mlp, PrivilegedCritic};
 use crate::recurrent::{LstmNet, RecurrentActor, RecurrentCritic};
 use crate::update::{UpdateStats, adapt_learning_rate};
 use burn::module::Module;
-use loss::{actor_pass, critic_pass, squared};
+use loss::{actor_pass, actor_pass_part, critic_pass, finish_actor_pass, squared};
 use lstm::{LstmLayout, Recurrent, Role};
-use net::{FlatNet, Overwrite, Side, mlp_widths};
+use net::{FlatNet, Input, Overwrite, Side, mlp_widths};
 use safetensors::tensor::{Dtype, SafeTensors, TensorView};
 use std::collections::HashMap;
 
@@ -210,16 +214,22 @@ pub struct RolloutOutputs {
 pub struct FusedLearner {
     actor: Side,
     critic: Side,
+    /// A second copy of a recurrent actor whose critic is light (a privileged MLP): a
+    /// minibatch's windows are then shared between the two copies on two threads, the
+    /// critic on a third, instead of the actor on one thread and the critic on the other
+    /// (`None`: the actor's pass runs whole on one thread).
+    twin: Option<Side>,
 }
 
 impl FusedLearner {
     /// The feed-forward networks' parameters copied from `actor` and `critic`, Adam's
     /// moments from `optim` (fresh where absent or of another shape).
     pub fn new(actor: &Actor, critic: &Critic, optim: Option<FusedOptim>) -> Self {
-        let (oa, oc) = optim.map_or((None, None), |o| (Some(o.actor), Some(o.critic)));
+        let (oa, oc) = split(optim);
         Self {
-            actor: Side::new(FlatNet::of(actor, mlp_widths(&actor.mlp), 0), oa, None),
-            critic: Side::new(FlatNet::of(critic, mlp_widths(&critic.mlp), 0), oc, None),
+            actor: mlp_side(actor, &actor.mlp, oa, Input::Observation),
+            critic: mlp_side(critic, &critic.mlp, oc, Input::Observation),
+            twin: None,
         }
     }
 
@@ -229,10 +239,36 @@ impl FusedLearner {
         critic: &RecurrentCritic,
         optim: Option<FusedOptim>,
     ) -> Self {
-        let (oa, oc) = optim.map_or((None, None), |o| (Some(o.actor), Some(o.critic)));
+        let (oa, oc) = split(optim);
         Self {
             actor: recurrent_side(actor, &actor.net, oa, Role::Actor),
             critic: recurrent_side(critic, &critic.net, oc, Role::Critic),
+            twin: None,
+        }
+    }
+
+    /// [`FusedLearner::new`] for a feed-forward actor beside a privileged critic.
+    pub fn privileged(actor: &Actor, critic: &PrivilegedCritic, optim: Option<FusedOptim>) -> Self {
+        let (oa, oc) = split(optim);
+        Self {
+            actor: mlp_side(actor, &actor.mlp, oa, Input::Observation),
+            critic: mlp_side(critic, &critic.mlp, oc, Input::Privileged),
+            twin: None,
+        }
+    }
+
+    /// [`FusedLearner::new`] for a recurrent actor (rows E-G) beside a privileged critic.
+    pub fn recurrent_privileged(
+        actor: &RecurrentActor,
+        critic: &PrivilegedCritic,
+        optim: Option<FusedOptim>,
+    ) -> Self {
+        let (oa, oc) = split(optim);
+        let actor = recurrent_side(actor, &actor.net, oa, Role::Actor);
+        Self {
+            twin: Some(actor.clone()),
+            actor,
+            critic: mlp_side(critic, &critic.mlp, oc, Input::Privileged),
         }
     }
 
@@ -261,9 +297,9 @@ impl FusedLearner {
         }
     }
 
-    /// True for the recurrent networks.
+    /// True when either network carries a state: minibatches are whole env windows.
     pub fn is_recurrent(&self) -> bool {
-        self.actor.recurrent.is_some()
+        self.actor.recurrent.is_some() || self.critic.recurrent.is_some()
     }
 
     /// The minibatch of `idx`: its samples (feed-forward networks) or its envs' whole
@@ -279,33 +315,16 @@ impl FusedLearner {
         }
     }
 
-    /// The actor's means for every row of `obs`, the critic's values for them and for every
-    /// row of `last_obs` (the observations after the window): what PPO's batch needs, the
-    /// two networks on two threads (feed-forward networks).
-    pub fn rollout_outputs(
-        &mut self,
-        obs: &[f32],
-        last_obs: &[f32],
-    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    /// What PPO's batch needs of the networks over `b`, the two on two threads: the actor's
+    /// means for every sample, the critic's values for them and for the states after the
+    /// window (`last_obs`, the observations after it, or the batch's privileged ones) and,
+    /// for a recurrent critic, its states to start the next window from. Recurrent
+    /// networks run over `b`'s windows from its stored states.
+    pub fn batch_outputs(&mut self, b: &Batch, last_obs: &[f32]) -> RolloutOutputs {
         let (actor, critic) = (&mut self.actor, &mut self.critic);
         std::thread::scope(|s| {
-            let critic_job = s.spawn(|| (critic.outputs(obs), critic.outputs(last_obs)));
-            let mean = actor.outputs(obs);
-            let (values, last) = critic_job
-                .join()
-                .unwrap_or_else(|e| std::panic::resume_unwind(e));
-            (mean, values, last)
-        })
-    }
-
-    /// [`FusedLearner::rollout_outputs`] for the recurrent networks over `b`'s windows:
-    /// the actor's means, the critic's values, its values for `last_obs` and its states to
-    /// start the next window from.
-    pub fn window_outputs(&mut self, b: &Batch, last_obs: &[f32]) -> RolloutOutputs {
-        let (actor, critic) = (&mut self.actor, &mut self.critic);
-        std::thread::scope(|s| {
-            let critic_job = s.spawn(|| critic.window_outputs(b, Some(last_obs)));
-            let (mean, _, _) = actor.window_outputs(b, None);
+            let critic_job = s.spawn(|| critic.batch_outputs(b, Some(last_obs)));
+            let (mean, _, _) = actor.batch_outputs(b, None);
             let (values, last_values, critic_next) = critic_job
                 .join()
                 .unwrap_or_else(|e| std::panic::resume_unwind(e));
@@ -371,7 +390,13 @@ impl FusedLearner {
             };
         }
         let (actor, critic) = (&mut self.actor, &mut self.critic);
-        let (a, value_loss) = if parallel {
+        let twin = self
+            .twin
+            .as_mut()
+            .filter(|_| parallel && mb.envs.len() >= 2);
+        let (a, value_loss) = if let Some(twin) = twin {
+            shared_pass(actor, twin, critic, b, mb, p)
+        } else if parallel {
             std::thread::scope(|s| {
                 let critic_job = s.spawn(|| critic_pass(critic, b, mb, p));
                 let a = actor_pass(actor, b, mb, p);
@@ -431,6 +456,52 @@ impl FusedLearner {
     }
 }
 
+/// The actor's pass over `mb` with its windows shared between `actor` and its copy `twin`
+/// on two threads, the critic's pass on a third: the gradient the whole pass gives (summed
+/// in another order), in `actor.grad`.
+fn shared_pass(
+    actor: &mut Side,
+    twin: &mut Side,
+    critic: &mut Side,
+    b: &Batch,
+    mb: &Minibatch,
+    p: &PpoConfig,
+) -> (loss::ActorStats, f64) {
+    twin.net.params.copy_from_slice(&actor.net.params);
+    let n = mb.samples.len();
+    let (first, second) = mb.envs.split_at(mb.envs.len() / 2);
+    let (first, second) = (Minibatch::of_envs(b, first), Minibatch::of_envs(b, second));
+    let (sums, twin_sums, value_loss) = std::thread::scope(|s| {
+        let critic_job = s.spawn(|| critic_pass(critic, b, mb, p));
+        let twin_job = s.spawn(|| actor_pass_part(twin, b, &second, p, n));
+        let sums = actor_pass_part(actor, b, &first, p, n);
+        let twin_sums = twin_job
+            .join()
+            .unwrap_or_else(|e| std::panic::resume_unwind(e));
+        let value_loss = critic_job
+            .join()
+            .unwrap_or_else(|e| std::panic::resume_unwind(e));
+        (sums, twin_sums, value_loss)
+    });
+    for (g, t) in actor.grad.iter_mut().zip(&twin.grad) {
+        *g += t;
+    }
+    (
+        finish_actor_pass(actor, p, sums.plus(twin_sums), n),
+        value_loss,
+    )
+}
+
+/// Adam's moments of each network, where there are any.
+fn split(optim: Option<FusedOptim>) -> (Option<AdamMoments>, Option<AdamMoments>) {
+    optim.map_or((None, None), |o| (Some(o.actor), Some(o.critic)))
+}
+
+/// The fused side of the feed-forward `module` whose layers are `mlp`, reading `input`.
+fn mlp_side<M: Module>(module: &M, mlp: &Mlp, adam: Option<AdamMoments>, input: Input) -> Side {
+    Side::new(FlatNet::of(module, mlp_widths(mlp), 0), adam, None, input)
+}
+
 /// The fused side of `module`, whose LSTM layers and head are `net`.
 fn recurrent_side<M: Module>(
     module: &M,
@@ -441,7 +512,12 @@ fn recurrent_side<M: Module>(
     let input = net.lstm.first().map_or(0, |l| l.weight_ih.val().dims()[0]);
     let layout = LstmLayout::new(input, net.hidden(), net.lstm.len());
     let flat = FlatNet::of(module, mlp_widths(&net.head), layout.len());
-    Side::new(flat, adam, Some(Recurrent::new(layout, role)))
+    Side::new(
+        flat,
+        adam,
+        Some(Recurrent::new(layout, role)),
+        Input::Observation,
+    )
 }
 
 #[cfg(test)]

@@ -129,6 +129,35 @@ pub(super) struct Side {
     pub(super) ws: Workspace,
     /// A recurrent network's LSTM layers (before the MLP in `net.params`).
     pub(super) recurrent: Option<Recurrent>,
+    /// What a feed-forward network reads of a batch.
+    pub(super) input: Input,
+}
+
+/// The rows a feed-forward [`Side`] reads of a batch.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Input {
+    /// The actor's observations (`Batch::obs`).
+    Observation,
+    /// The privileged critic's states (`Batch::critic`).
+    Privileged,
+}
+
+impl Input {
+    /// The rows of `b` this input reads, one per sample (empty when `b` holds none).
+    pub(super) fn rows(self, b: &Batch) -> &[f32] {
+        match self {
+            Self::Observation => &b.obs,
+            Self::Privileged => b.critic.as_ref().map_or(&[][..], |c| &c.obs),
+        }
+    }
+
+    /// The rows after the window, one per env, given the observations after it.
+    pub(super) fn last_rows<'a>(self, b: &'a Batch, last_obs: &'a [f32]) -> &'a [f32] {
+        match self {
+            Self::Observation => last_obs,
+            Self::Privileged => b.critic.as_ref().map_or(&[][..], |c| &c.last_obs),
+        }
+    }
 }
 
 /// Envs per group when a whole rollout's windows run forward ([`Side::window_outputs`]): the
@@ -140,6 +169,7 @@ impl Side {
         net: FlatNet,
         adam: Option<AdamMoments>,
         recurrent: Option<Recurrent>,
+        input: Input,
     ) -> Self {
         let n = net.params.len();
         let adam = adam
@@ -151,6 +181,7 @@ impl Side {
             net,
             adam,
             recurrent,
+            input,
         }
     }
 
@@ -214,6 +245,23 @@ impl Side {
         (y, last, next)
     }
 
+    /// The outputs for every sample of `b` and, with `last_obs` (the observations after the
+    /// window), for the states after the window and (a recurrent network) its states to
+    /// start the next window from; a feed-forward network reads its [`Input`].
+    pub(super) fn batch_outputs(
+        &mut self,
+        b: &Batch,
+        last_obs: Option<&[f32]>,
+    ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        if self.recurrent.is_some() {
+            return self.window_outputs(b, last_obs);
+        }
+        let input = self.input;
+        let all = self.outputs(input.rows(b));
+        let last = last_obs.map_or_else(Vec::new, |l| self.outputs(input.last_rows(b, l)));
+        (all, last, Vec::new())
+    }
+
     /// The outputs for every row of `obs` (row-major, the network's input width), chunk by
     /// chunk (feed-forward networks).
     pub(super) fn outputs(&mut self, obs: &[f32]) -> Vec<f32> {
@@ -240,17 +288,24 @@ impl Side {
             grad,
             ws,
             recurrent,
+            input,
             ..
         } = self;
         grad.fill(0.0);
         let out = net.sizes[net.layers()];
         let n_in = net.sizes[0];
         let Some(rec) = recurrent else {
+            let source = input.rows(b);
+            if source.len() < b.len() * n_in {
+                // A batch without this network's input (a privileged critic on a rollout
+                // that recorded no privileged state): no gradient.
+                return;
+            }
             for rows in mb.samples.chunks(CHUNK) {
                 let m = rows.len();
                 for (r, &i) in rows.iter().enumerate() {
                     ws.x[r * n_in..(r + 1) * n_in]
-                        .copy_from_slice(&b.obs[i * n_in..(i + 1) * n_in]);
+                        .copy_from_slice(&source[i * n_in..(i + 1) * n_in]);
                 }
                 forward(net, ws, m);
                 head(rows, &ws.y[..m * out], &mut ws.d_a[..m * out]);

@@ -4,8 +4,49 @@
 
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::tensor::Tensor;
+use host_trainer::batch::Batch;
+use host_trainer::config::{PpoConfig, UpdateKind};
 use host_trainer::model::values;
+use host_trainer::nets::{PolicyNet, PpoNet};
 use host_trainer::ppo::{Learner, UpdateStats};
+use host_trainer::rollout::Rollout;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+/// The PPO settings of the parity tests (2 epochs × 2 minibatches, entropy and KL on) with
+/// `update`.
+pub fn params(update: UpdateKind) -> PpoConfig {
+    PpoConfig {
+        epochs: 2,
+        minibatches: 2,
+        value_coef: 0.7,
+        entropy_coef: 0.01,
+        learning_rate: 1e-4,
+        desired_kl: Some(0.01),
+        update,
+        ..PpoConfig::default()
+    }
+}
+
+/// The batch `burn` builds from `r`, its old log-probabilities and values moved by up to
+/// ±0.5 so that a share of the ratios and of the values starts outside the clip range.
+/// (`fused.rs` builds its feed-forward batches sample by sample instead.)
+#[allow(dead_code)]
+pub fn clip_crossing_batch<A: PolicyNet, C: PpoNet>(
+    l: &Learner<A, C>,
+    r: &Rollout,
+    seed: u64,
+) -> Batch {
+    let mut b = l.prepare(r, &params(UpdateKind::Burn));
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    for lp in &mut b.old_log_prob {
+        *lp += rng.random_range(-0.5..0.5);
+    }
+    for v in &mut b.old_values {
+        *v += rng.random_range(-0.5..0.5);
+    }
+    b
+}
 
 /// The largest `|a − b|` relative to `max |b|` over the vector.
 pub fn relative_error(a: &[f32], b: &[f32]) -> f32 {

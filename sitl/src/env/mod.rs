@@ -54,7 +54,8 @@ pub use config::{
 };
 pub use error::{ActionShapeError, EnvError, EpisodeStepsError};
 use flight::{FlightBook, FlightStep};
-use observe::{ego_observation, observe, observe_drones};
+pub use observe::PRIVILEGED_EXTRA;
+use observe::{ego_observation, observe, observe_drones, privileged};
 use opponent::Race;
 pub use opponent::{MAX_BLOB_BYTES, interned, read_blob};
 pub use reward::{Competition, RewardTerms, RewardWeights, dense_competition};
@@ -580,6 +581,38 @@ impl VecEnv {
         self.config.race = Some(race);
         self.respawn_all();
         Ok(())
+    }
+
+    /// Values per privileged state ([`VecEnv::privileged_observations`]): the observation's
+    /// and [`PRIVILEGED_EXTRA`] more.
+    pub fn privileged_dim(&self) -> usize {
+        self.obs_dim + PRIVILEGED_EXTRA
+    }
+
+    /// Every env's privileged state, `num_envs × privileged_dim`, row-major, into `out`
+    /// (cleared first): what an asymmetric critic learns the value from, which the deployed
+    /// policy never sees. Per env:
+    /// - the ego's observation of its true state: the same layout, fold and opponent as
+    ///   [`VecEnv::observations`], without the randomised sensor noise (zeros when the
+    ///   pipeline refuses the state);
+    /// - the episode's randomised airframe (`env.randomize`) as ratios to the preset minus 1:
+    ///   thrust, mass, inertia (0 when not randomised);
+    /// - the ego's motor time constant (units of 10 ms), its command latency (steps);
+    /// - the share of the episode's time left (1 at the start, 0 at the time-out).
+    pub fn privileged_observations(&self, out: &mut Vec<f32>) {
+        let dim = self.privileged_dim();
+        out.clear();
+        out.resize(self.slots.len() * dim, 0.0);
+        for (slot, row) in self.slots.iter().zip(out.chunks_exact_mut(dim)) {
+            privileged(
+                &self.world,
+                &self.spec,
+                self.fold.as_ref(),
+                slot,
+                self.max_steps,
+                row,
+            );
+        }
     }
 
     /// The observation of every env's current state reflected in the track's mirror plane

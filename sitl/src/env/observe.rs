@@ -82,3 +82,41 @@ pub(super) fn observe_drones(
         Err(_) => out.fill(0.0),
     }
 }
+
+/// Values a privileged critic sees beyond the ego's observation
+/// ([`super::VecEnv::privileged_observations`]).
+pub const PRIVILEGED_EXTRA: usize = 6;
+
+/// The privileged state of `slot` for a value function that trains beside the policy and is
+/// never deployed: the ego's observation of its true state (no sensor noise), then the
+/// episode's draws and its clock (see [`super::VecEnv::privileged_observations`]).
+pub(super) fn privileged(
+    world: &World,
+    spec: &ObservationSpec,
+    fold: Option<&TrackMirror>,
+    slot: &Slot,
+    max_steps: u32,
+    out: &mut [f32],
+) {
+    let (obs, extra) = out.split_at_mut(out.len() - PRIVILEGED_EXTRA);
+    match ego_observation(world, spec, fold, slot, slot.opponent.is_some()) {
+        Ok((o, _)) => obs.copy_from_slice(o.as_slice()),
+        Err(_) => obs.fill(0.0),
+    }
+    let nominal = &world.preset;
+    let (ego, latency) = match &slot.perturbed {
+        Some(p) => (&p.ego_preset, p.latency_steps),
+        None => (nominal, 0),
+    };
+    let ratio = |a: f32, b: f32| if b > 0.0 { a / b - 1.0 } else { 0.0 };
+    let left = 1.0 - slot.steps as f32 / max_steps.max(1) as f32;
+    extra.copy_from_slice(&[
+        ratio(ego.thrust_scale, nominal.thrust_scale),
+        ratio(ego.mass_kg, nominal.mass_kg),
+        ratio(ego.inertia_kgm2[0], nominal.inertia_kgm2[0]),
+        // 10 ms → 1.
+        ego.motor_time_constant_s * 100.0,
+        latency as f32,
+        left.clamp(0.0, 1.0),
+    ]);
+}
