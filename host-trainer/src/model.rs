@@ -150,7 +150,7 @@ macro_rules! mlp_ppo_net {
         impl PpoNet for $net {
             const RECURRENT: bool = false;
             fn outputs(&self, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
-                mlp_outputs(&self.mlp, b, mb, device)
+                mlp_outputs(&self.mlp, &b.obs, b.obs_dim, mb, device)
             }
             fn rollout_outputs(
                 &self,
@@ -158,32 +158,29 @@ macro_rules! mlp_ppo_net {
                 last: Option<&[f32]>,
                 device: &Device,
             ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-                mlp_rollout_outputs(&self.mlp, b, last, device)
+                mlp_rollout_outputs(&self.mlp, &b.obs, last, b.obs_dim, device)
             }
         }
     };
 }
 
-/// `mlp`'s outputs for `mb`'s samples of `b`.
-fn mlp_outputs(mlp: &Mlp, b: &Batch, mb: &Minibatch, device: &Device) -> Tensor<2> {
-    mlp.forward(tensor2(
-        gather(&b.obs, b.obs_dim, &mb.samples),
-        b.obs_dim,
-        device,
-    ))
+/// `mlp`'s outputs for `mb`'s samples, whose inputs are `rows` (`dim` values per sample).
+fn mlp_outputs(mlp: &Mlp, rows: &[f32], dim: usize, mb: &Minibatch, device: &Device) -> Tensor<2> {
+    mlp.forward(tensor2(gather(rows, dim, &mb.samples), dim, device))
 }
 
-/// `mlp`'s outputs for every sample of `b` and, with `last`, for the observations after the
-/// window (no state to carry).
+/// `mlp`'s outputs for every row of `rows` (`dim` values each) and, with `last`, for the
+/// inputs after the window (no state to carry).
 fn mlp_rollout_outputs(
     mlp: &Mlp,
-    b: &Batch,
+    rows: &[f32],
     last: Option<&[f32]>,
+    dim: usize,
     device: &Device,
 ) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-    let all = values(mlp.forward(tensor2(b.obs.clone(), b.obs_dim, device)));
+    let all = values(mlp.forward(tensor2(rows.to_vec(), dim, device)));
     let last = last.map_or_else(Vec::new, |l| {
-        values(mlp.forward(tensor2(l.to_vec(), b.obs_dim, device)))
+        values(mlp.forward(tensor2(l.to_vec(), dim, device)))
     });
     (all, last, Vec::new())
 }
@@ -321,8 +318,7 @@ impl PpoNet for PrivilegedCritic {
         let Some(c) = &b.critic else {
             return Tensor::zeros([mb.samples.len(), 1], device);
         };
-        self.mlp
-            .forward(tensor2(gather(&c.obs, c.dim, &mb.samples), c.dim, device))
+        mlp_outputs(&self.mlp, &c.obs, c.dim, mb, device)
     }
 
     fn rollout_outputs(
@@ -334,12 +330,8 @@ impl PpoNet for PrivilegedCritic {
         let Some(c) = &b.critic else {
             return (vec![0.0; b.len()], Vec::new(), Vec::new());
         };
-        let all = values(self.mlp.forward(tensor2(c.obs.clone(), c.dim, device)));
-        let last = match last {
-            Some(_) => values(self.mlp.forward(tensor2(c.last_obs.clone(), c.dim, device))),
-            None => Vec::new(),
-        };
-        (all, last, Vec::new())
+        let last = last.map(|_| &c.last_obs[..]);
+        mlp_rollout_outputs(&self.mlp, &c.obs, last, c.dim, device)
     }
 }
 
@@ -347,10 +339,10 @@ impl ValueNet for PrivilegedCritic {
     /// The head widths of `arch` (its MLP layers: the whole network of a feed-forward row)
     /// on [`PrivilegedCritic::input_dim`], one output.
     fn fresh(arch: &Architecture, rng: &mut ChaCha8Rng, device: &Device) -> Self {
-        let sizes: Vec<usize> = core::iter::once(Self::input_dim(arch))
-            .chain(arch.mlp_hidden.iter().map(|&w| usize::from(w)))
-            .chain(core::iter::once(1))
-            .collect();
+        let mut sizes = mlp_sizes(arch);
+        if let [first, .., last] = sizes.as_mut_slice() {
+            (*first, *last) = (Self::input_dim(arch), 1);
+        }
         Self {
             mlp: Mlp::new(&sizes, rng, device),
         }
