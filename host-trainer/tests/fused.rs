@@ -17,7 +17,9 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 mod fused_common;
-use fused_common::{assert_networks_close, assert_stats_close, flat, relative_error};
+use fused_common::{
+    assert_networks_close, assert_prepared_close, assert_stats_close, flat, relative_error,
+};
 
 fn learner(seed: u64) -> Learner {
     let device = Device::flex().autodiff();
@@ -239,16 +241,7 @@ fn a_fused_prepare_equals_burns() {
             ..params()
         },
     );
-    for (name, a, b) in [
-        ("old_mean", &fused.old_mean, &burn.old_mean),
-        ("old_values", &fused.old_values, &burn.old_values),
-        ("old_log_prob", &fused.old_log_prob, &burn.old_log_prob),
-        ("returns", &fused.returns, &burn.returns),
-        ("advantages", &fused.advantages, &burn.advantages),
-    ] {
-        let e = relative_error(a, b);
-        assert!(e < 1e-5, "{name}: relative error {e}");
-    }
+    assert_prepared_close(&fused, &burn, "row A");
 }
 
 /// With the actor frozen (the critic's warm-up after a warm start) only the critic steps,

@@ -6,7 +6,6 @@
 
 use burn::tensor::Device;
 use firmware_core::policy::{Architecture, TableRow};
-use host_trainer::batch::Batch;
 use host_trainer::config::{PpoConfig, UpdateKind};
 use host_trainer::fused::FusedLearner;
 use host_trainer::model::{Actor, PrivilegedCritic};
@@ -20,7 +19,8 @@ use rand_chacha::ChaCha8Rng;
 
 mod fused_common;
 use fused_common::{
-    assert_networks_close, assert_stats_close, clip_crossing_batch, flat, params, relative_error,
+    assert_networks_close, assert_prepared_close, assert_stats_close, clip_crossing_batch, flat,
+    params, relative_error,
 };
 
 fn learner<A: PolicyNet>(row: TableRow, seed: u64) -> Learner<A, PrivilegedCritic> {
@@ -59,10 +59,6 @@ fn rollout(row: TableRow, envs: usize, steps: usize, seed: u64) -> Rollout {
     out
 }
 
-fn batch<A: PolicyNet>(l: &Learner<A, PrivilegedCritic>, r: &Rollout, seed: u64) -> Batch {
-    clip_crossing_batch(l, r, seed)
-}
-
 /// Row G: `prepare`'s fused pass builds `burn`'s batch (no critic state to carry), and
 /// every gradient of both networks is `burn`'s to 1e-5.
 #[test]
@@ -71,17 +67,9 @@ fn a_privileged_critic_beside_a_recurrent_actor_has_burns_gradients() {
     let r = rollout(TableRow::G, 9, 14, 1);
     let fused = l.prepare(&r, &params(UpdateKind::Fused));
     let burn = l.prepare(&r, &params(UpdateKind::Burn));
-    for (name, a, b) in [
-        ("old_mean", &fused.old_mean, &burn.old_mean),
-        ("old_values", &fused.old_values, &burn.old_values),
-        ("returns", &fused.returns, &burn.returns),
-        ("advantages", &fused.advantages, &burn.advantages),
-    ] {
-        let e = relative_error(a, b);
-        assert!(e < 1e-5, "{name}: relative error {e:e}");
-    }
+    assert_prepared_close(&fused, &burn, "row G");
     assert!(burn.sequence.as_ref().unwrap().critic_next.is_empty());
-    let b = batch(&l, &r, 2);
+    let b = clip_crossing_batch(&l, &r, 2);
     let p = params(UpdateKind::Fused);
     let burn_actor = l.actor_gradient(&b, &p);
     let burn_critic = l.critic_gradient(&b, &p);
@@ -113,7 +101,7 @@ fn a_fused_minibatch_step_with_a_privileged_critic_equals_burns() {
             learner::<RecurrentActor>(TableRow::G, 7),
         );
         let r = rollout(TableRow::G, 10, 12, 3);
-        let b = batch(&burn, &r, 4);
+        let b = clip_crossing_batch(&burn, &r, 4);
         let envs = [1, 4, 5, 8, 9];
         let sb = burn.train_minibatch(&b, &envs, &p);
         // The windows shared between two copies of the actor on two threads (the default)
@@ -136,7 +124,7 @@ fn a_fused_minibatch_step_with_a_privileged_critic_equals_burns() {
             learner::<Actor>(TableRow::A, 8),
         );
         let r = rollout(TableRow::A, 16, 8, 5);
-        let b = batch(&burn, &r, 6);
+        let b = clip_crossing_batch(&burn, &r, 6);
         let samples: Vec<usize> = (0..b.len()).step_by(3).collect();
         let sb = burn.train_minibatch(&b, &samples, &p);
         let sf = fused.train_minibatch_fused(&b, &samples, &p);

@@ -1,6 +1,6 @@
-//! What the fused update's parity tests (`fused.rs`, `fused_recurrent.rs`) share: the
-//! error measure, the networks' flat parameters, and the comparisons of a step's statistics
-//! and of the networks after it.
+//! What the fused update's parity tests (`fused.rs`, `fused_recurrent.rs`,
+//! `privileged_critic.rs`) share: the error measure, the networks' flat parameters, and the
+//! comparisons of a prepared batch, of a step's statistics and of the networks after it.
 
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::tensor::Tensor;
@@ -56,6 +56,21 @@ pub fn relative_error(a: &[f32], b: &[f32]) -> f32 {
         .zip(b)
         .map(|(x, y)| (x - y).abs() / scale)
         .fold(0.0, f32::max)
+}
+
+/// The batch `prepare` built on the fused path against `burn`'s: the old means, values and
+/// log-probabilities, the returns and the advantages, each the same to 1e-5 (relative).
+pub fn assert_prepared_close(fused: &Batch, burn: &Batch, what: &str) {
+    for (name, a, b) in [
+        ("old_mean", &fused.old_mean, &burn.old_mean),
+        ("old_values", &fused.old_values, &burn.old_values),
+        ("old_log_prob", &fused.old_log_prob, &burn.old_log_prob),
+        ("returns", &fused.returns, &burn.returns),
+        ("advantages", &fused.advantages, &burn.advantages),
+    ] {
+        let e = relative_error(a, b);
+        assert!(e < 1e-5, "{what} {name}: relative error {e:e}");
+    }
 }
 
 /// Every parameter's flat values in `burn`'s visiting order.
