@@ -3,7 +3,9 @@
 
 usage: python3 tools/table1.py [POLICIES_DIR]
 
-Reads POLICIES_DIR/stage1/eval.json for row A (a time trial from the stage-1 spawn),
+Reads POLICIES_DIR/stage1/eval_jitter.json for row A (a time trial from jittered stage-1
+starts, issue "robust": 100 different flights rather than one flight repeated; eval.json, the
+nominal spawn, where there is no jittered report),
 POLICIES_DIR/stage2_{B..F}/eval.json (the ablations, imitation students racing
 stage1_guarded.blob), POLICIES_DIR/stage2_G/eval.json (row G by the same imitation
 pipeline) and POLICIES_DIR/stage2/eval.json (row G by PPO, racing stage1.blob), each written
@@ -81,7 +83,8 @@ def row(letter, label, report):
     return [
         label,
         opponent(report),
-        f"{report['episodes']} × {report['episode_seconds']:.0f} s",
+        f"{report['episodes']} × {report['episode_seconds']:.0f} s"
+        + (", jittered" if report.get("perturbation") else ""),
         interval(report["success_rate"], report["success_rate_ci95"])
         + f" ({report['gates_passed']}/{report['gates_encountered']})",
         interval(report["crash_rate"], report["crash_rate_ci95"]),
@@ -111,8 +114,10 @@ def main():
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
     for letter, label, name in ROWS:
-        path = os.path.join(root, name, "eval.json")
-        report = json.load(open(path)) if os.path.exists(path) else None
+        files = ["eval_jitter.json", "eval.json"] if letter == "A" else ["eval.json"]
+        paths = [os.path.join(root, name, f) for f in files]
+        path = next((p for p in paths if os.path.exists(p)), None)
+        report = json.load(open(path)) if path else None
         print("| " + " | ".join(row(letter, label, report)) + " |")
     budget(root)
 

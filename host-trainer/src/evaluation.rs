@@ -250,14 +250,14 @@ mod tests {
         );
     }
 
-    /// `run.select.perturb` flies the validation under the perturbation: `stage1.blob`, which
+    /// `run.select.perturb` flies the validation under the perturbation: `stage1_nominal.blob`, which
     /// one step of latency breaks, validates worse under it; absent, the validation is the
     /// unperturbed one.
     #[test]
     fn a_perturbed_selection_flies_its_perturbation() {
         let blob = std::fs::read(concat!(
             env!("CARGO_MANIFEST_DIR"),
-            "/../policies/stage1.blob"
+            "/../policies/stage1_nominal.blob"
         ))
         .unwrap();
         let select = |perturb: Option<&str>| Selection {

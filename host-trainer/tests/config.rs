@@ -6,6 +6,9 @@ use sitl::env::RewardWeights;
 use std::path::Path;
 
 const STAGE1: &str = include_str!("../configs/stage1.toml");
+/// The stage-1 recipe before the ego was randomised (`configs/stage1.toml` until 2026-12-07):
+/// [`TrainConfig::ours`] and sitl's named stage-1 environment.
+const STAGE1_NOMINAL: &str = include_str!("../configs/experiments/stage1_nominal.toml");
 const FINETUNE: &str = include_str!("../configs/experiments/stage1_finetune.toml");
 const PAPER: &str = include_str!("../configs/stage1_paper.toml");
 
@@ -176,7 +179,7 @@ fn a_selection_is_checked_and_hashed() {
         ("episodes = 100", "episodes = 0", "episodes"),
         (
             "from_iteration = 2000 }",
-            "from_iteration = 2501 }",
+            "from_iteration = 4501 }",
             "from_iteration",
         ),
         ("seed = 7,", "seed = 7, lap = 1,", "lap"),
@@ -224,10 +227,16 @@ fn ranking_by_win_rate_is_for_races_and_changes_the_hash() {
 #[test]
 fn the_presets_in_code_are_the_toml_presets() {
     assert_eq!(TrainConfig::parse(PAPER).unwrap(), TrainConfig::paper());
-    assert_eq!(TrainConfig::parse(STAGE1).unwrap(), TrainConfig::ours());
+    assert_eq!(
+        TrainConfig::parse(STAGE1_NOMINAL).unwrap(),
+        TrainConfig::ours()
+    );
     assert_eq!(TrainConfig::default(), TrainConfig::paper());
     // The presets are valid configs and hash as their files do (a blob's provenance).
-    for (text, preset) in [(PAPER, TrainConfig::paper()), (STAGE1, TrainConfig::ours())] {
+    for (text, preset) in [
+        (PAPER, TrainConfig::paper()),
+        (STAGE1_NOMINAL, TrainConfig::ours()),
+    ] {
         let round_trip = TrainConfig::parse(&toml::to_string(&preset).unwrap()).unwrap();
         assert_eq!(round_trip, preset);
         assert_eq!(preset.hash(), TrainConfig::parse(text).unwrap().hash());
@@ -414,7 +423,7 @@ fn a_transplant_needs_its_teacher_alone_and_may_fold() {
     assert!(warm.transplant && ok.env.fold_mirror && warm.rounds == 0);
     for (bad, says) in [
         (
-            text.replacen("teacher_blob = \"policies/stage1.blob\"\n", "", 1),
+            text.replacen("teacher_blob = \"policies/stage1_nominal.blob\"\n", "", 1),
             "teacher_blob",
         ),
         (
@@ -482,11 +491,24 @@ fn every_committed_config_round_trips_through_the_env_schema() {
 #[test]
 fn the_shipped_environments_are_sitls_named_ones() {
     use sitl::env::EnvConfig;
+    let nominal = TrainConfig::parse(STAGE1_NOMINAL).unwrap();
+    assert_eq!(
+        nominal.env,
+        EnvConfig {
+            seed: 1,
+            ..EnvConfig::stage1(512)
+        }
+    );
+    // The shipped stage-1 run is that environment with the ego randomised on a share of the
+    // spawns (`[randomize_ramp]` raises the share during the run).
     let stage1 = TrainConfig::parse(STAGE1).unwrap();
+    assert!(stage1.env.randomize.is_some() && stage1.env.randomize_share > 0.0);
     assert_eq!(
         stage1.env,
         EnvConfig {
             seed: 1,
+            randomize: stage1.env.randomize.clone(),
+            randomize_share: stage1.env.randomize_share,
             ..EnvConfig::stage1(512)
         }
     );
@@ -562,32 +584,47 @@ fn environment_errors_name_the_field() {
 /// The previous stage-2 path (what `sitl race` flew until `stage2.toml`):
 /// `configs/stage2_transplant.toml` is, parsed, the run's own `config.toml` beside
 /// `policies/stage2_transplant.blob` (whose provenance `shipped_policies.rs` checks against
-/// it), and it starts from the stage-1 blob that `configs/stage1.toml` makes.
+/// it, by the paths its run named), and it starts from the stage-1 blob that
+/// `experiments/stage1_nominal.toml` makes (`configs/stage1.toml` then).
 #[test]
 fn the_transplant_stage2_config_is_the_one_that_made_its_race_ego() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
     let blessed =
         TrainConfig::load(&root.join("host-trainer/configs/stage2_transplant.toml")).unwrap();
     let made = TrainConfig::load(&root.join("policies/stage2_transplant/config.toml")).unwrap();
-    assert_eq!(blessed, made);
-    assert_eq!(blessed.hash(), made.hash());
+    // The nominal stage-1 policy was policies/stage1.blob when the run was made.
+    let mut renamed = blessed.clone();
+    if let Some(w) = renamed.warm_start.as_mut() {
+        w.teacher_blob = Some("policies/stage1.blob".into());
+    }
+    if let Some(race) = renamed.env.race.as_mut() {
+        race.opponent = "policies/stage1.blob".into();
+    }
+    assert_eq!(renamed, made);
+    assert_eq!(renamed.hash(), made.hash());
     let warm = blessed.warm_start.as_ref().unwrap();
     assert!(warm.transplant && warm.rounds == 0);
-    assert_eq!(warm.teacher_blob.as_deref(), Some("policies/stage1.blob"));
-    let stage1 = TrainConfig::parse(STAGE1).unwrap();
+    assert_eq!(
+        warm.teacher_blob.as_deref(),
+        Some("policies/stage1_nominal.blob")
+    );
+    let stage1 = TrainConfig::parse(STAGE1_NOMINAL).unwrap();
     assert_eq!(stage1.run.name, "stage1");
 }
 
-/// `configs/stage2.toml` (what `sitl race` flies) is `stage2_transplant.toml` with the
-/// faster teacher and its own name and seed, and `experiments/race_long.toml` (run long2)
-/// under another name and seed; the teacher is `experiments/stage1_long.toml`'s blob, which is
-/// `stage1.toml` with a larger budget.
+/// `experiments/stage2_long.toml` (`configs/stage2.toml` until 2026-12-07) is
+/// `stage2_transplant.toml` with the faster teacher and its own name and seed, and
+/// `experiments/race_long.toml` (run long2) under another name and seed; the teacher is
+/// `experiments/stage1_long.toml`'s blob, which is `stage1_nominal.toml` with a larger budget.
+/// `configs/stage2.toml` (what `sitl race` flies) is that recipe with the robust teacher,
+/// opponent and draws, and `experiments/stage1_robust_fast.toml` is `configs/stage1.toml`
+/// with 300 more iterations under a wider draw.
 #[test]
 fn the_long_stage2_recipe_is_the_transplant_recipe_with_the_long_teacher() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
     let load = |p: &str| TrainConfig::load(&root.join(p)).unwrap();
-    let long = load("stage2.toml");
-    assert_eq!(long.run.seed, 2, "seed 2 of three ships");
+    let long = load("experiments/stage2_long.toml");
+    assert_eq!(long.run.seed, 2, "seed 2 of three shipped");
     let mut renamed = load("experiments/race_long.toml");
     renamed.run.name = long.run.name.clone();
     renamed.run.seed = long.run.seed;
@@ -602,11 +639,28 @@ fn the_long_stage2_recipe_is_the_transplant_recipe_with_the_long_teacher() {
     }
     assert_eq!(transplant, long);
     let mut stage1_long = load("experiments/stage1_long.toml");
-    let stage1 = TrainConfig::parse(STAGE1).unwrap();
+    let stage1 = TrainConfig::parse(STAGE1_NOMINAL).unwrap();
     assert_eq!(stage1_long.run.iterations, 2 * stage1.run.iterations);
     stage1_long.run.iterations = stage1.run.iterations;
     stage1_long.run.name = stage1.run.name.clone();
     assert_eq!(stage1_long, stage1);
+
+    let robust = load("stage2.toml");
+    let mut from_long = long.clone();
+    from_long.run.name = robust.run.name.clone();
+    from_long.run.seed = robust.run.seed;
+    from_long.env.seed = robust.env.seed;
+    from_long.env.randomize = robust.env.randomize.clone();
+    from_long.env.randomize_share = robust.env.randomize_share;
+    from_long.env.race.as_mut().unwrap().opponent = "policies/stage1.blob".into();
+    from_long.warm_start.as_mut().unwrap().teacher_blob =
+        Some("policies/stage1_robust_fast.blob".into());
+    assert_eq!(from_long, robust);
+    let fast = load("experiments/stage1_robust_fast.toml");
+    let shipped1 = TrainConfig::parse(STAGE1).unwrap();
+    assert_eq!(fast.run.iterations, shipped1.run.iterations + 300);
+    assert_eq!(fast.randomize_ramp, shipped1.randomize_ramp);
+    assert_eq!(fast.env.randomize_share, shipped1.env.randomize_share);
 }
 
 /// `experiments/race_curriculum.toml` is the shipped race recipe at the same budget with one
@@ -618,7 +672,8 @@ fn an_opponent_curriculum_is_the_shipped_recipe_with_an_earlier_opponent() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
     let text = std::fs::read_to_string(root.join("experiments/race_curriculum.toml")).unwrap();
     let curriculum = TrainConfig::parse(&text).unwrap();
-    let shipped = TrainConfig::load(&root.join("stage2.toml")).unwrap();
+    // The race recipe it was run beside (configs/stage2.toml until 2026-12-07).
+    let shipped = TrainConfig::load(&root.join("experiments/stage2_long.toml")).unwrap();
     let opponent = |c: &TrainConfig, i| c.race_at(i).unwrap().opponent;
     assert_eq!(
         opponent(&curriculum, 0),
@@ -630,9 +685,12 @@ fn an_opponent_curriculum_is_the_shipped_recipe_with_an_earlier_opponent() {
     );
     assert_eq!(
         opponent(&curriculum, 100),
-        Path::new("policies/stage1.blob")
+        Path::new("policies/stage1_nominal.blob")
     );
-    assert_eq!(opponent(&shipped, 0), Path::new("policies/stage1.blob"));
+    assert_eq!(
+        opponent(&shipped, 0),
+        Path::new("policies/stage1_nominal.blob")
+    );
     assert_eq!(
         curriculum.race_at(100),
         shipped.race_at(0),

@@ -369,6 +369,8 @@ fn a_selection_exports_the_validations_best_across_a_resume() {
     // The shipped pipeline at a tiny budget, fine-tuning the shipped policy with large fixed
     // steps: the candidates fly, and differ from one iteration to the next.
     let mut config = TrainConfig::parse(include_str!("../configs/stage1.toml")).unwrap();
+    // The draws from the first iteration: the ramp's iterations lie past this budget.
+    config.randomize_ramp = None;
     config.run.iterations = 8;
     config.run.checkpoint_every = 2;
     config.run.eval_every = 1;
@@ -683,6 +685,8 @@ fn a_fork_exports_a_best_actor_from_before_the_fork() {
     // episode perfectly from the first evaluation, so no later one can be strictly better and
     // a tie goes to the earlier iteration.
     let mut config = TrainConfig::parse(include_str!("../configs/stage1.toml")).unwrap();
+    // The draws from the first iteration: the ramp's iterations lie past this budget.
+    config.randomize_ramp = None;
     config.run.iterations = 4;
     config.run.checkpoint_every = 2;
     config.run.keep_best = true;

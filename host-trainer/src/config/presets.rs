@@ -46,7 +46,8 @@ impl TrainConfig {
         self
     }
 
-    /// This project's stage-1 pipeline (`configs/stage1.toml`), PPO from a random network:
+    /// This project's nominal stage-1 pipeline (`configs/experiments/stage1_nominal.toml`,
+    /// `configs/stage1.toml` until it randomised the ego), PPO from a random network:
     /// 512 envs × 100 steps spawned along the track at up to 8 m/s (a fifth at the paper's
     /// spawn, 30 % replaying states after gate passes), the figure-8 folded by its mirror
     /// symmetry, the own velocity observed at 12 m/s full scale, lr 3e-4, σ₀ 0.3 under a

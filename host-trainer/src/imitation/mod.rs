@@ -455,7 +455,7 @@ pub fn imitate_recurrent(
 mod tests {
     use super::*;
 
-    /// `stage1.blob`'s means leave [-1, 1] in the race's states (which is why its students
+    /// `stage1_nominal.blob`'s means leave [-1, 1] in the race's states (which is why its students
     /// clamp them): unclamped labels show it, clamped ones stay in range and agree with the
     /// unclamped ones wherever those are in range.
     #[test]
@@ -464,10 +464,14 @@ mod tests {
         let mut config = TrainConfig::parse(include_str!("../../configs/smoke_race.toml")).unwrap();
         config.env.num_envs = 64;
         if let Some(race) = config.env.race.as_mut() {
-            race.opponent = root.join("policies/stage1.blob");
+            race.opponent = root.join("policies/stage1_nominal.blob");
         }
         let warm = WarmStart {
-            teacher_blob: Some(root.join("policies/stage1.blob").display().to_string()),
+            teacher_blob: Some(
+                root.join("policies/stage1_nominal.blob")
+                    .display()
+                    .to_string(),
+            ),
             ..WarmStart::default()
         };
         let (teacher, mut env, _) = set_up(&config, &warm).unwrap();

@@ -35,10 +35,10 @@ def shipped_env(task: str = "time_trial") -> dict[str, Any]:
 
     Returns ``{"env": host-trainer's [env] table, "reward": the reward weights,
     "competition": ..., "competition_weight": ...}``, from ``sitl::env::EnvConfig::stage1``
-    (``task="time_trial"``: ``host-trainer/configs/stage1.toml``, what
-    ``policies/stage1.blob`` was trained in) or ``EnvConfig::stage2`` (``task="race"``: the
-    paper's race with the shipped velocity scale). host-trainer's tests hold them equal to
-    the shipped configs.
+    (``task="time_trial"``: ``host-trainer/configs/stage1.toml`` without its domain
+    randomisation, i.e. ``configs/experiments/stage1_nominal.toml``) or ``EnvConfig::stage2``
+    (``task="race"``: the paper's race with the shipped velocity scale). host-trainer's tests
+    hold them equal to the shipped configs.
     """
     return json.loads(_shipped_env_json(task))
 
