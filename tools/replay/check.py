@@ -40,6 +40,8 @@ COLORS = {  # viewer.js COLORS, as sRGB bytes
     "rotor": (0x3A, 0x3F, 0x48),
 }
 NOSE_M = (0.12, 0.0, 0.03)  # viewer.js NOSE.at_m, body frame
+TRAIL_S = 1.5  # viewer.js TRAIL_S: the seconds of path drawn behind each drone
+TRAIL_CLEAR_M = 0.5  # a drone's body (0.16 m) and rotors clear of the other's trail line
 ROTOR_M = 0.177  # viewer.js ROTOR_M
 ROTOR_Z_M = 0.015
 GATE_BAR_M = 0.1  # viewer.js GATE_BAR_M
@@ -99,22 +101,40 @@ def framing(gates, width, height):
     return lambda x, y: (width / 2 + (x - cx) * scale, height / 2 - (y - cy) * scale), scale
 
 
-def pick_moment(data, episode=0):
-    """A step of the episode where the drones are apart and clear of every gate."""
+def pick_moment(data):
+    """The first episode and step where the drones are apart, clear of every gate and clear
+    of each other's trail (the viewer draws the last TRAIL_S seconds of each path over the
+    scene: a drone that flies the other's line a second behind it sits under that trail)."""
+    for episode in range(len(data["episodes"])):
+        found = moment_in(data, episode)
+        if found is not None:
+            return (episode, *found)
+    sys.exit("no step with the drones apart, clear of the gates and of each other's trail")
+
+
+def moment_in(data, episode):
     e = data["episodes"][episode]
     ego, opp = f32s(e["ego"]), f32s(e["opponent"])
     gates = [g["center_m"] for g in data["track"]["gates"]]
     respawns = set(e["respawns"])
+    trail_steps = round(TRAIL_S / data["dt_s"]) + 1
+
+    def at(states, j):
+        return states[STATE_FLOATS * j:STATE_FLOATS * j + 3]
+
     for k in range(100, e["steps"] - 1):
-        if k in respawns or k + 1 in respawns:
+        if any(j in respawns for j in range(k - trail_steps, k + 2)):
             continue
-        a = ego[STATE_FLOATS * k:STATE_FLOATS * k + 3]
-        b = opp[STATE_FLOATS * k:STATE_FLOATS * k + 3]
+        a, b = at(ego, k), at(opp, k)
         if math.dist(a[:2], b[:2]) < 1.0:
             continue
-        if all(math.dist(p[:2], g[:2]) > 1.0 for p in (a, b) for g in gates):
+        if not all(math.dist(p[:2], g[:2]) > 1.0 for p in (a, b) for g in gates):
+            continue
+        trails = range(k - trail_steps, k + 1)
+        if all(math.dist(b[:2], at(ego, j)[:2]) > TRAIL_CLEAR_M
+               and math.dist(a[:2], at(opp, j)[:2]) > TRAIL_CLEAR_M for j in trails):
             return k, a, b
-    sys.exit("no step with the drones apart and clear of the gates")
+    return None
 
 
 def chromium(binary, url, out_dir, *extra):
@@ -160,12 +180,12 @@ def pixel_near(img, x, y, color, block=2):
 def check_pixels(args, page_path, data, out_dir):
     from PIL import Image
 
-    k, ego, opp = pick_moment(data)
-    e0 = data["episodes"][0]
+    episode, k, ego, opp = pick_moment(data)
+    e0 = data["episodes"][episode]
     q = {key: f32s(e0[key])[STATE_FLOATS * k + 3:STATE_FLOATS * k + 7] for key in ("ego", "opponent")}
     t = repr((k + 1) * data["dt_s"])
     shot = os.path.join(out_dir, "probe.png")
-    url = f"file://{os.path.abspath(page_path)}#probe=1&episode=0&t={t}"
+    url = f"file://{os.path.abspath(page_path)}#probe=1&episode={episode}&t={t}"
     r = chromium(args.chromium, url, out_dir, f"--window-size={WIDTH},{HEIGHT}", f"--screenshot={shot}")
     if not os.path.exists(shot):
         sys.exit(f"chromium wrote no screenshot:\n{r.stderr[-2000:]}")
@@ -204,7 +224,7 @@ def check_pixels(args, page_path, data, out_dir):
         failures.append("the ego's colour at the opponent's position")
     if failures:
         sys.exit("the rendered replay does not show the recorded positions:\n" + "\n".join(failures))
-    print(f"pixels: step {k} (t = {float(t):.2f} s), {scale:.1f} px/m: {len(probes)} probes (both "
+    print(f"pixels: episode {episode}, step {k} (t = {float(t):.2f} s), {scale:.1f} px/m: {len(probes)} probes (both "
           f"drones' bodies, noses and rotors by their recorded attitudes, "
           f"{len(data['track']['gates'])} gates by centre and heading), background clear")
 
