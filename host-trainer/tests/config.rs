@@ -5,6 +5,8 @@ use host_trainer::config::{ConfigError, TrainConfig};
 use sitl::env::RewardWeights;
 use std::path::Path;
 
+mod renamed;
+
 const STAGE1: &str = include_str!("../configs/stage1.toml");
 /// The stage-1 recipe before the ego was randomised (`configs/stage1.toml` until 2026-12-07):
 /// [`TrainConfig::ours`] and sitl's named stage-1 environment.
@@ -593,13 +595,8 @@ fn the_transplant_stage2_config_is_the_one_that_made_its_race_ego() {
         TrainConfig::load(&root.join("host-trainer/configs/stage2_transplant.toml")).unwrap();
     let made = TrainConfig::load(&root.join("policies/stage2_transplant/config.toml")).unwrap();
     // The nominal stage-1 policy was policies/stage1.blob when the run was made.
-    let mut renamed = blessed.clone();
-    if let Some(w) = renamed.warm_start.as_mut() {
-        w.teacher_blob = Some("policies/stage1.blob".into());
-    }
-    if let Some(race) = renamed.env.race.as_mut() {
-        race.opponent = "policies/stage1.blob".into();
-    }
+    let renamed = renamed::as_run(&blessed);
+    assert_ne!(renamed, blessed, "the rename applies");
     assert_eq!(renamed, made);
     assert_eq!(renamed.hash(), made.hash());
     let warm = blessed.warm_start.as_ref().unwrap();

@@ -10,6 +10,9 @@ use sitl::pilot::PilotSpec;
 use sitl::referee::SpawnMode;
 use std::path::Path;
 
+mod renamed;
+use renamed::as_run;
+
 fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().unwrap()
 }
@@ -36,14 +39,7 @@ fn the_stage1_policy_is_the_shipped_config_from_scratch_and_flies_as_recorded() 
     assert!(config.warm_start.is_none(), "no imitation");
     assert!(config.env.randomize.is_some(), "trained randomised");
     assert!(config.run.keep_best && config.run.select.is_some());
-    let metrics: Vec<host_trainer::metrics::IterationMetrics> = shipped_jsonl("stage1", "metrics");
-    assert_eq!(
-        metrics.last().map(|m| m.iteration),
-        Some(config.run.iterations),
-        "the run finished"
-    );
-    let chosen = host_trainer::evaluation::best_evaluation(&metrics, &config.run).unwrap();
-    assert_eq!(iterations, chosen.iteration, "not the validation's choice");
+    the_runs_choice("stage1", &config, iterations);
     assert_eq!(
         TrainConfig::load(&root().join("policies/stage1/config.toml")).unwrap(),
         config
@@ -77,30 +73,13 @@ fn the_long_stage1_policy_is_its_config_and_flies_as_recorded() {
     let (raw, config, iterations) =
         shipped_blob(name, "host-trainer/configs/experiments/stage1_long.toml");
     assert!(config.warm_start.is_none() && config.run.select.is_some());
-    let metrics: Vec<host_trainer::metrics::IterationMetrics> = shipped_jsonl(name, "metrics");
-    assert_eq!(
-        metrics.last().map(|m| m.iteration),
-        Some(config.run.iterations)
-    );
-    let chosen = host_trainer::evaluation::best_evaluation(&metrics, &config.run).unwrap();
-    assert_eq!(iterations, chosen.iteration, "not the validation's choice");
+    the_runs_choice(name, &config, iterations);
     assert!(folded(&raw));
     let dir = root().join("policies/stage1_long");
     let (_, r) = flies_as_recorded(name, &raw, &dir.join("eval.json"));
     assert!(r.success_rate >= 0.999 && r.crashes == 0, "{}", r.table());
     let (_, along) = flies_as_recorded(name, &raw, &dir.join("eval_along_track.json"));
-    let (_, stage1) = flies_as_recorded(
-        "stage1_nominal",
-        &std::fs::read(root().join("policies/stage1_nominal.blob")).unwrap(),
-        &root().join("policies/stage1_nominal/eval_along_track.json"),
-    );
-    assert_eq!((along.episodes, along.seed), (stage1.episodes, stage1.seed));
-    assert!(
-        along.mean_lap_s.unwrap() < stage1.mean_lap_s.unwrap() - 0.1,
-        "{} against {}",
-        along.table(),
-        stage1.table()
-    );
+    laps_faster_than(&along, "stage1_nominal", "eval_along_track.json");
 }
 
 /// `policies/stage1_robust_fast.blob` (`stage2.blob`'s teacher) is
@@ -130,27 +109,11 @@ fn the_robust_teacher_is_a_fork_of_the_stage1_run_and_faster_than_it() {
         forked["iteration"].as_u64(),
         Some(u64::from(stage1.run.iterations))
     );
-    let metrics: Vec<host_trainer::metrics::IterationMetrics> = shipped_jsonl(name, "metrics");
-    assert_eq!(
-        metrics.last().map(|m| m.iteration),
-        Some(config.run.iterations)
-    );
-    let chosen = host_trainer::evaluation::best_evaluation(&metrics, &config.run).unwrap();
-    assert_eq!(iterations, chosen.iteration, "not the validation's choice");
+    the_runs_choice(name, &config, iterations);
     assert!(folded(&raw));
     let dir = root().join("policies/stage1_robust_fast");
     let (_, fast) = flies_as_recorded(name, &raw, &dir.join("eval_jitter.json"));
-    let (_, opponent) = flies_as_recorded(
-        "stage1",
-        &std::fs::read(root().join("policies/stage1.blob")).unwrap(),
-        &root().join("policies/stage1/eval_jitter.json"),
-    );
-    assert!(
-        fast.mean_lap_s.unwrap() < opponent.mean_lap_s.unwrap() - 0.1,
-        "{} against {}",
-        fast.table(),
-        opponent.table()
-    );
+    laps_faster_than(&fast, "stage1", "eval_jitter.json");
 }
 
 /// `policies/stage2.blob`, what `sitl race` flies, against `stage1.blob` on the 20
@@ -223,13 +186,7 @@ fn the_robust_stage1_policy_is_its_config_and_survives_latency_as_recorded() {
     let (raw, config, iterations) =
         shipped_blob(name, "host-trainer/configs/experiments/stage1_robust.toml");
     assert!(config.env.randomize.is_some(), "trained randomised");
-    let metrics: Vec<host_trainer::metrics::IterationMetrics> = shipped_jsonl(name, "metrics");
-    assert_eq!(
-        metrics.last().map(|m| m.iteration),
-        Some(config.run.iterations)
-    );
-    let chosen = host_trainer::evaluation::best_evaluation(&metrics, &config.run).unwrap();
-    assert_eq!(iterations, chosen.iteration);
+    the_runs_choice(name, &config, iterations);
     assert_eq!(
         TrainConfig::load(&root().join("policies/stage1_robust/config.toml")).unwrap(),
         config
@@ -279,6 +236,48 @@ fn shipped_blobs_are_their_configs_and_fly_as_recorded() {
     }
 }
 
+/// The shipped `metrics.jsonl` of `policies/{name}` is a finished run, and the blob's
+/// provenance iteration is the actor the run's evaluations chose there (`best_evaluation`:
+/// the validation's best with `run.select`, else the referee's); returns the metrics.
+fn the_runs_choice(
+    name: &str,
+    config: &TrainConfig,
+    iterations: u32,
+) -> Vec<host_trainer::metrics::IterationMetrics> {
+    let metrics: Vec<host_trainer::metrics::IterationMetrics> = shipped_jsonl(name, "metrics");
+    assert_eq!(
+        metrics.last().map(|m| m.iteration),
+        Some(config.run.iterations),
+        "{name}: the run finished"
+    );
+    let chosen = host_trainer::evaluation::best_evaluation(&metrics, &config.run).unwrap();
+    assert_eq!(
+        iterations, chosen.iteration,
+        "{name}: not the actor the run's evaluations chose"
+    );
+    metrics
+}
+
+/// `faster` (a blob's replayed report) laps more than 0.1 s faster on the mean than
+/// `policies/{other}.blob` flies the same episodes, replayed from `policies/{other}/{record}`.
+fn laps_faster_than(faster: &sitl::eval::Report, other: &str, record: &str) {
+    let (_, slower) = flies_as_recorded(
+        other,
+        &std::fs::read(root().join(format!("policies/{other}.blob"))).unwrap(),
+        &root().join(format!("policies/{other}/{record}")),
+    );
+    assert_eq!(
+        (faster.episodes, faster.seed),
+        (slower.episodes, slower.seed)
+    );
+    assert!(
+        faster.mean_lap_s.unwrap() < slower.mean_lap_s.unwrap() - 0.1,
+        "{} against {}",
+        faster.table(),
+        slower.table()
+    );
+}
+
 /// Whether the blob `raw` observes folded (observation pipeline version 2).
 fn folded(raw: &[u8]) -> bool {
     let bytes = AlignedBytes::new(raw);
@@ -312,34 +311,6 @@ fn shipped_blob(name: &str, config: &str) -> (Vec<u8>, TrainConfig, u32) {
     );
     let iterations = p.iterations;
     (raw, config, iterations)
-}
-
-/// Blobs renamed after runs that name them were made: (the path now, the path the runs
-/// named). On 2026-12-07 the robust stage-1 policy took the name `stage1.blob` and the
-/// nominal one became `stage1_nominal.blob`; the configs say where the file is now, and a
-/// blob's provenance hashes its config as it was run.
-const RENAMED: &[(&str, &str)] = &[("policies/stage1_nominal.blob", "policies/stage1.blob")];
-
-/// `config` with the blobs it names by their paths when its runs were made ([`RENAMED`]).
-fn as_run(config: &TrainConfig) -> TrainConfig {
-    let then = |path: &str| {
-        RENAMED
-            .iter()
-            .find(|(now, _)| *now == path)
-            .map_or_else(|| path.to_string(), |(_, then)| then.to_string())
-    };
-    let mut c = config.clone();
-    if let Some(race) = c.env.race.as_mut() {
-        race.opponent = then(&race.opponent.to_string_lossy()).into();
-    }
-    for stage in &mut c.opponent_curriculum {
-        stage.opponent = then(&stage.opponent.to_string_lossy()).into();
-    }
-    if let Some(w) = c.warm_start.as_mut() {
-        w.teacher_blob = w.teacher_blob.as_deref().map(then);
-        w.student = w.student.as_deref().map(then);
-    }
-    c
 }
 
 /// The blob `raw` races `opponent` (a path from the repository root) exactly as the
@@ -477,17 +448,7 @@ fn check_race(name: &str, config_name: &str) {
         config.run.keep_best,
         "{config_name}: the stage-2 runs keep the best"
     );
-    let metrics: Vec<host_trainer::metrics::IterationMetrics> = shipped_jsonl(name, "metrics");
-    assert_eq!(
-        metrics.last().map(|m| m.iteration),
-        Some(config.run.iterations),
-        "{name}: the run finished"
-    );
-    let best = host_trainer::evaluation::best_evaluation(&metrics, &config.run).unwrap();
-    assert_eq!(
-        iterations, best.iteration,
-        "{name}: not the best evaluation"
-    );
+    let metrics = the_runs_choice(name, &config, iterations);
     if config
         .warm_start
         .as_ref()
@@ -551,7 +512,7 @@ fn the_race_distillation_is_its_configs_warm_start_and_races_as_recorded() {
         shipped_blob("stage2_G_distil", "policies/stage2_G_distil/config.toml");
     assert_eq!(iterations, 0, "the warm start, before any PPO iteration");
     let warm = config.warm_start.expect("a warm start");
-    // Its run's own config, by the path the teacher had then ([`RENAMED`]).
+    // Its run's own config, by the path the teacher had then (`renamed::RENAMED`).
     assert_eq!(warm.teacher_blob.as_deref(), Some("policies/stage1.blob"));
     assert!(warm.clamp_labels);
     races_as_recorded(
