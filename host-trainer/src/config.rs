@@ -319,11 +319,56 @@ pub struct Selection {
     pub seed: u64,
     /// The first iteration whose evaluation is a candidate (earlier ones are not validated).
     pub from_iteration: u32,
-    /// The validation flown under this perturbation (`sitl eval --perturb`'s text; spans
+    /// The validation flown under these perturbations (`sitl eval --perturb`'s text; spans
     /// drawn per episode), so that a recipe trained for robustness ranks its candidates by
-    /// how they fly under it. Absent: unperturbed.
+    /// how they fly under them. One text, or a list of them (`""` is the unperturbed flight):
+    /// `episodes` under each, and the candidate's success, crashes and mean lap are the
+    /// means over the list, so that e.g. `["motor-tau-ms=20", "latency=1"]` ranks by both
+    /// conditions of a robustness bar rather than by their combination, which a single
+    /// text's spans would draw. Absent: unperturbed.
+    #[serde(
+        default,
+        with = "one_or_many_perturbations",
+        skip_serializing_if = "Vec::is_empty"
+    )]
+    pub perturb: Vec<sitl::perturb::PerturbSpec>,
+    /// Jitter every validation start as `sitl eval --jitter` does (its text: `""` for ±5 cm,
+    /// ±5° and ±0.2 m/s), under each of `perturb`: the starts a robustness bar is judged
+    /// from. Absent: the spawns exactly.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub perturb: Option<sitl::perturb::PerturbSpec>,
+    pub jitter: Option<sitl::perturb::JitterSpec>,
+}
+
+/// `run.select.perturb` as a config writes it: one `--perturb` text or a list of them. One
+/// is written back as the text alone, so a config's hash does not depend on which was used.
+mod one_or_many_perturbations {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+    use sitl::perturb::PerturbSpec;
+
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Texts {
+        One(String),
+        Many(Vec<String>),
+    }
+
+    pub fn serialize<S: Serializer>(specs: &[PerturbSpec], s: S) -> Result<S::Ok, S::Error> {
+        match specs {
+            [one] => one.serialize(s),
+            many => many.serialize(s),
+        }
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<PerturbSpec>, D::Error> {
+        let texts = match Texts::deserialize(d)? {
+            Texts::One(text) => vec![text],
+            Texts::Many(texts) => texts,
+        };
+        texts
+            .iter()
+            .map(|t| PerturbSpec::parse(t).map_err(serde::de::Error::custom))
+            .collect()
+    }
 }
 
 fn default_eval_races() -> u32 {

@@ -56,22 +56,57 @@ pub fn referee_prefers(a: &IterationMetrics, b: &IterationMetrics) -> bool {
     key(a) > key(b)
 }
 
+/// What `run.select` validates a candidate by: the means over its perturbations.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Validation {
+    /// The mean of the conditions' success rates.
+    pub success_rate: f64,
+    /// The mean of the conditions' crashes per second.
+    pub crash_rate: f64,
+    /// The mean of the conditions' mean laps (s), over those that flew a lap; `None` if none did.
+    pub mean_lap_s: Option<f64>,
+}
+
 /// The validation of `run.select`: the deterministic policy flown `episodes` × 45 s alone
-/// from the selection's spawns (seed `seed`), under `perturb` when it names one.
-pub fn selection_eval(blob: &[u8], preset: Preset, select: &Selection) -> Option<Report> {
+/// from the selection's spawns (seed `seed`, jittered with `jitter`) under each of `perturb`
+/// (unperturbed when it names none), averaged over them.
+pub fn selection_eval(blob: &[u8], preset: Preset, select: &Selection) -> Option<Validation> {
     let spec = PilotSpec::from_blob("training", blob).ok()?;
-    let eval = EvalConfig {
-        preset,
-        episodes: select.episodes,
-        seconds: 45.0,
-        seed: select.seed,
-        spawn: Some(select.spawn),
-        perturbation: select
-            .perturb
-            .as_ref()
-            .map_or(sitl::perturb::Perturbation::NONE, |p| *p.value()),
+    let nominal = [sitl::perturb::Perturbation::NONE];
+    let conditions = if select.perturb.is_empty() {
+        nominal.to_vec()
+    } else {
+        select.perturb.iter().map(|p| *p.value()).collect()
     };
-    Some(report(&spec, None, &eval))
+    let jitter = select
+        .jitter
+        .as_ref()
+        .map(|j| *j.value())
+        .unwrap_or_default();
+    let reports: Vec<Report> = conditions
+        .into_iter()
+        .map(|perturbation: sitl::perturb::Perturbation| {
+            let eval = EvalConfig {
+                preset,
+                episodes: select.episodes,
+                seconds: 45.0,
+                seed: select.seed,
+                spawn: Some(select.spawn),
+                perturbation: sitl::perturb::Perturbation {
+                    jitter,
+                    ..perturbation
+                },
+            };
+            report(&spec, None, &eval)
+        })
+        .collect();
+    let n = reports.len() as f64;
+    let laps: Vec<f64> = reports.iter().filter_map(|r| r.mean_lap_s).collect();
+    Some(Validation {
+        success_rate: reports.iter().map(|r| r.success_rate).sum::<f64>() / n,
+        crash_rate: reports.iter().map(|r| r.crash_rate).sum::<f64>() / n,
+        mean_lap_s: (!laps.is_empty()).then(|| laps.iter().sum::<f64>() / laps.len() as f64),
+    })
 }
 
 /// The key `run.keep_best` ranks by, greater is better: success, then fewer crashes, then a
@@ -213,7 +248,8 @@ mod tests {
                 episodes: 10,
                 seed: 7,
                 from_iteration: 20,
-                perturb: None,
+                perturb: Vec::new(),
+                jitter: None,
             }),
             ..RunConfig::default()
         };
@@ -250,7 +286,8 @@ mod tests {
         );
     }
 
-    /// `run.select.perturb` flies the validation under the perturbation: `stage1_nominal.blob`, which
+    /// `run.select.perturb` flies the validation under the perturbation (a list: the means over
+    /// it; `run.select.jitter` from jittered starts): `stage1_nominal.blob`, which
     /// one step of latency breaks, validates worse under it; absent, the validation is the
     /// unperturbed one.
     #[test]
@@ -260,17 +297,36 @@ mod tests {
             "/../policies/stage1_nominal.blob"
         ))
         .unwrap();
-        let select = |perturb: Option<&str>| Selection {
+        let select = |perturb: &[&str]| Selection {
             spawn: SpawnMode::AlongTrack,
             episodes: 6,
             seed: 7,
             from_iteration: 0,
-            perturb: perturb.map(|p| sitl::perturb::PerturbSpec::parse(p).unwrap()),
+            perturb: perturb
+                .iter()
+                .map(|p| sitl::perturb::PerturbSpec::parse(p).unwrap())
+                .collect(),
+            jitter: None,
         };
         let preset = sitl::dynamics::Preset::paper();
-        let nominal = selection_eval(&blob, preset, &select(None)).unwrap();
-        let late = selection_eval(&blob, preset, &select(Some("latency=1"))).unwrap();
+        let nominal = selection_eval(&blob, preset, &select(&[])).unwrap();
+        let late = selection_eval(&blob, preset, &select(&["latency=1"])).unwrap();
+        let both = selection_eval(&blob, preset, &select(&["", "latency=1"])).unwrap();
+        let jittered = Selection {
+            jitter: Some(sitl::perturb::JitterSpec::parse("").unwrap()),
+            ..select(&[])
+        };
+        let jittered = selection_eval(&blob, preset, &jittered).unwrap();
+        assert_ne!(jittered, nominal, "the jitter moved no start");
         assert!(nominal.success_rate > 0.9, "{}", nominal.success_rate);
+        assert_eq!(
+            both.success_rate,
+            (nominal.success_rate + late.success_rate) / 2.0
+        );
+        assert_eq!(
+            both.crash_rate,
+            (nominal.crash_rate + late.crash_rate) / 2.0
+        );
         assert!(
             late.crash_rate > nominal.crash_rate + 0.2,
             "{} against {}",

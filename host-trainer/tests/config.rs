@@ -185,12 +185,32 @@ fn a_selection_is_checked_and_hashed() {
             "from_iteration",
         ),
         ("seed = 7,", "seed = 7, lap = 1,", "lap"),
+        ("seed = 7,", "seed = 7, jitter = \"pos=-1\",", "jitter"),
     ] {
         let e = TrainConfig::parse(&STAGE1.replace(from, to))
             .unwrap_err()
             .to_string();
         assert!(e.contains(field), "{to}: {e}");
     }
+    // The perturbations: one text or a list; one of them hashes as the text alone, a list of
+    // two is another validation, and a bad text is refused by its key.
+    let with = |perturb: &str| {
+        STAGE1.replace(
+            "from_iteration = 2000 }",
+            &format!("from_iteration = 2000, perturb = {perturb} }}"),
+        )
+    };
+    let one = TrainConfig::parse(&with("\"latency=1\"")).unwrap();
+    let one_listed = TrainConfig::parse(&with("[\"latency=1\"]")).unwrap();
+    let two = TrainConfig::parse(&with("[\"motor-tau-ms=20\", \"latency=1\"]")).unwrap();
+    assert_eq!(one.hash(), one_listed.hash());
+    assert_ne!(one.hash(), stage1.hash());
+    assert_ne!(one.hash(), two.hash());
+    assert_eq!(two.run.select.as_ref().unwrap().perturb.len(), 2);
+    let e = TrainConfig::parse(&with("[\"latency=1\", \"lag=20\"]"))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("lag"), "{e}");
     // A race (keep_best on) ranks its races; a selection there is refused.
     let race = include_str!("../configs/experiments/stage2_B.toml")
         .replace("[env]", &format!("{select}\n\n[env]"));

@@ -198,7 +198,8 @@ fn a_run_killed_at_any_iteration_even_inside_the_validation_resumes_bit_for_bit(
         episodes: 2,
         seed: 7,
         from_iteration: 2,
-        perturb: None,
+        perturb: Vec::new(),
+        jitter: None,
     });
     config.run.keep_best = true;
     TrainConfig::parse(&toml::to_string(&config).unwrap()).unwrap();
@@ -379,7 +380,8 @@ fn a_selection_exports_the_validations_best_across_a_resume() {
         episodes: 6,
         seed: 7,
         from_iteration: 3,
-        perturb: None,
+        perturb: Vec::new(),
+        jitter: None,
     };
     config.run.select = Some(select.clone());
     config.env.num_envs = 64;

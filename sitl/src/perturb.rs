@@ -539,6 +539,43 @@ impl<'de> Deserialize<'de> for PerturbSpec {
     }
 }
 
+/// A [`StartJitter`] as a config writes it: `sitl eval --jitter`'s value (`""` for
+/// [`StartJitter::STANDARD`], else `pos=M,att-deg=DEG,vel=MPS`), kept as written (it is part
+/// of a training config's hash), with its parsed value. (De)serialised as the text.
+#[derive(Clone, Debug, PartialEq)]
+pub struct JitterSpec {
+    text: String,
+    value: StartJitter,
+}
+
+impl JitterSpec {
+    /// Parses `text` as `--jitter` does ([`Perturbation::with_jitter`], its bounds checked).
+    pub fn parse(text: &str) -> Result<Self, String> {
+        Ok(Self {
+            value: Perturbation::NONE.with_jitter(text)?.jitter,
+            text: text.to_string(),
+        })
+    }
+
+    /// The jitter.
+    pub fn value(&self) -> &StartJitter {
+        &self.value
+    }
+}
+
+impl Serialize for JitterSpec {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(&self.text)
+    }
+}
+
+impl<'de> Deserialize<'de> for JitterSpec {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        Self::parse(&text).map_err(serde::de::Error::custom)
+    }
+}
+
 /// The comma-separated `KEY=VALUE` items of `spec` (empty items skipped); an item without
 /// `=` is an error, prefixed with `what`.
 fn key_values<'a>(

@@ -556,6 +556,18 @@ fn a_replayed_spawn_is_the_state_after_a_gate_pass() {
     assert_eq!(fresh.observations(), start.as_slice());
 }
 
+/// How many different attitudes the envs observe (observation 3..7).
+fn distinct_attitudes(env: &VecEnv) -> usize {
+    let mut attitudes: Vec<&[f32]> = env
+        .observations()
+        .chunks_exact(OBS_DIM)
+        .map(|o| &o[3..7])
+        .collect();
+    attitudes.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    attitudes.dedup();
+    attitudes.len()
+}
+
 /// `stage2_fraction = 1`: every time-trial spawn is the paper's stage-2 start, at rest
 /// (whatever the spawn speed) 2 m (the ego's) or 1 m (the opponent's) before its target gate
 /// on the gate's axis, both distances and every heading drawn; with 0 none is.
@@ -591,17 +603,54 @@ fn stage2_spawns_start_at_rest_one_or_two_metres_before_a_gate() {
         two > 16 && one > 16,
         "{two} ego starts, {one} opponent starts"
     );
-    let mut attitudes: Vec<&[f32]> = env
-        .observations()
-        .chunks_exact(OBS_DIM)
-        .map(|o| &o[3..7])
-        .collect();
-    attitudes.sort_by(|a, b| a.partial_cmp(b).unwrap());
-    attitudes.dedup();
     // The six gates have four headings (g1 and g5 share theirs, g2 and g4 theirs).
-    assert_eq!(attitudes.len(), 4, "{} headings", attitudes.len());
+    assert_eq!(distinct_attitudes(&env), 4);
     let none = along(0.0);
     assert_eq!(count(&none, 2.0) + count(&none, 1.0), 0);
+}
+
+/// `spawn_jitter`: the ego's start moved as `sitl eval --jitter` moves it. From stage-2
+/// spawns every env's first observation differs from the unjittered one, the gate stays
+/// 1 or 2 m away within the position jitter, the drone drifts at most the velocity jitter
+/// per axis, and the four headings become one per env; without it the serialised config
+/// names no jitter, and a bad jitter text is refused by its key.
+#[test]
+fn a_jittered_spawn_moves_the_ego_start_within_its_bounds() {
+    use sitl::perturb::JitterSpec;
+    let stage2 = |jitter: Option<&str>| {
+        VecEnv::time_trial(EnvConfig {
+            spawn: SpawnMode::AlongTrack,
+            stage2_fraction: 1.0,
+            random_initial_episode_length: false,
+            spawn_jitter: jitter.map(|j| JitterSpec::parse(j).unwrap()),
+            ..EnvConfig::paper_along_track(64, 5)
+        })
+    };
+    let plain = stage2(None);
+    let jittered = stage2(Some(""));
+    let scale = EnvConfig::paper_along_track(1, 0).velocity_scale_mps;
+    let pairs = plain
+        .observations()
+        .chunks_exact(OBS_DIM)
+        .zip(jittered.observations().chunks_exact(OBS_DIM));
+    for (i, (p, j)) in pairs.enumerate() {
+        assert_ne!(p, j, "env {i} was not jittered");
+        let distance = |o: &[f32]| 12.0 * o[..3].iter().map(|v| v * v).sum::<f32>().sqrt();
+        let moved = (distance(p) - distance(j)).abs();
+        assert!(moved <= 0.05 * 3f32.sqrt() + 1e-4, "env {i}: {moved} m");
+        let speed = scale * j[7..10].iter().map(|v| v * v).sum::<f32>().sqrt();
+        assert!(
+            speed > 0.0 && speed <= 0.2 * 3f32.sqrt() + 1e-4,
+            "env {i}: {speed} m/s"
+        );
+    }
+    assert_eq!(distinct_attitudes(&jittered), 64);
+    let text = serde_json::to_string(&EnvConfig::paper_along_track(1, 0)).unwrap();
+    assert!(!text.contains("jitter"), "{text}");
+    for bad in ["pos=-0.1", "att-deg=100", "wobble=1", "vel=x"] {
+        let e = JitterSpec::parse(bad).unwrap_err();
+        assert!(e.contains("jitter"), "{bad}: {e}");
+    }
 }
 
 /// The mirror images a learner trains on (`VecEnv::mirrored_observations`), against the

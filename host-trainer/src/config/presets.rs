@@ -68,7 +68,8 @@ impl TrainConfig {
                     episodes: 100,
                     seed: 7,
                     from_iteration: 2000,
-                    perturb: None,
+                    perturb: Vec::new(),
+                    jitter: None,
                 }),
                 ..RunConfig::default()
             },

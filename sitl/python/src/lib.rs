@@ -166,7 +166,7 @@ impl RustVecEnv {
         random_initial_episode_length, opponent, competition, competition_weight, row,
         velocity_scale_mps, spawn_speed_mps, stage1_fraction, replay_fraction=0.0,
         reward_weights=None, stage2_fraction=0.0, fold_mirror=false, randomize=None,
-        randomize_share=1.0))]
+        randomize_share=1.0, spawn_jitter=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         task: &str,
@@ -189,6 +189,7 @@ impl RustVecEnv {
         fold_mirror: bool,
         randomize: Option<&str>,
         randomize_share: f32,
+        spawn_jitter: Option<&str>,
     ) -> PyResult<Self> {
         let value_error = |e: String| PyValueError::new_err(e);
         let task: Task = task.parse().map_err(value_error)?;
@@ -243,6 +244,12 @@ impl RustVecEnv {
                 })
                 .transpose()?,
             randomize_share,
+            spawn_jitter: spawn_jitter
+                .map(|j| {
+                    sitl::perturb::JitterSpec::parse(j)
+                        .map_err(|e| PyValueError::new_err(format!("spawn_jitter: {e}")))
+                })
+                .transpose()?,
             layout: row.observation_layout(),
             reward: reward_weights_from(reward_weights.unwrap_or_default())?,
             race,

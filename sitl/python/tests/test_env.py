@@ -312,11 +312,26 @@ def test_race_events():
         ({"randomize": "mass=-1"}, ValueError, "randomize: mass: must lie in"),
         ({"randomize": "gravity=2"}, ValueError, "unknown perturbation 'gravity'"),
         ({"randomize": "noise=1", "randomize_share": 1.5}, ValueError, "randomize_share"),
+        ({"spawn_jitter": "pos=-1"}, ValueError, "spawn_jitter"),
+        ({"spawn_jitter": "wobble=1"}, ValueError, "spawn_jitter: --jitter: unknown key 'wobble'"),
     ],
 )
 def test_bad_arguments_raise(kw, exc, text):
     with pytest.raises(exc, match=text):
         overtake.make_vec_env(**kw)
+
+
+def test_spawn_jitter_moves_the_starts():
+    """``spawn_jitter`` moves the ego's starts (its first observations differ from the exact
+    spawns'); the same seed jitters them alike."""
+    exact = overtake.make_vec_env(num_envs=8, seed=3, spawn_speed_mps=0.0)
+    jittered = overtake.make_vec_env(num_envs=8, seed=3, spawn_speed_mps=0.0, spawn_jitter="")
+    again = overtake.make_vec_env(num_envs=8, seed=3, spawn_speed_mps=0.0, spawn_jitter="")
+    o1, _ = exact.reset(seed=3)
+    o2, _ = jittered.reset(seed=3)
+    o3, _ = again.reset(seed=3)
+    assert not np.array_equal(o1, o2)
+    np.testing.assert_array_equal(o2, o3)
 
 
 def test_randomize_changes_the_observations_not_the_flight():

@@ -12,7 +12,7 @@
 
 use super::reward::{Competition, RewardWeights};
 use crate::dynamics::{Preset, PresetName};
-use crate::perturb::PerturbSpec;
+use crate::perturb::{JitterSpec, PerturbSpec};
 use crate::referee::SpawnMode;
 use firmware_core::observation::{ObservationLayout, ObservationSpec};
 use serde::{Deserialize, Serialize};
@@ -172,6 +172,13 @@ pub struct EnvConfig {
     /// where they were. Default 1 (left out at 1).
     #[serde(default = "one", skip_serializing_if = "is_one")]
     pub randomize_share: f32,
+    /// Jitter of the ego's start (not the paper's): every spawn that is not a replayed pass
+    /// moved as the referee's `sitl eval --jitter` moves a start (`""`: ±5 cm, ±5°, ±0.2 m/s
+    /// per axis; or `pos=M,att-deg=DEG,vel=MPS`), drawn from the spawn generator. A race's
+    /// opponent keeps its place (its recorded flight is keyed by it). Default none (left
+    /// out): no draw, so configs without it keep their streams.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spawn_jitter: Option<JitterSpec>,
     /// Which terms an observation holds: 17 values for a time trial (row A), 20 for row B,
     /// 30 for rows C-G. In a training config, `run.row` sets it.
     #[serde(skip, default = "time_trial_layout")]
@@ -240,6 +247,7 @@ impl EnvConfig {
             fold_mirror: false,
             randomize: None,
             randomize_share: 1.0,
+            spawn_jitter: None,
             layout: ObservationLayout::TimeTrial17,
             reward: RewardWeights::default(),
             race: None,

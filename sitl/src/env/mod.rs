@@ -265,6 +265,7 @@ impl VecEnv {
                 .map_or(0.0, |r| r.ego_ahead_fraction),
             randomize: self.config.randomize.as_ref().map(|p| *p.value()),
             randomize_share: self.config.randomize_share,
+            jitter: self.config.spawn_jitter.as_ref().map(|j| *j.value()),
         }
     }
 

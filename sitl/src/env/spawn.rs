@@ -2,7 +2,7 @@
 //! it replays (docs/DESIGN.md "Spawns").
 
 use super::Slot;
-use crate::perturb::Perturbation;
+use crate::perturb::{Perturbation, StartJitter};
 use crate::referee::{SpawnMode, TrackProgress};
 use crate::world::{Drone, World};
 use firmware_core::math::Vec3;
@@ -50,6 +50,9 @@ pub(super) struct SpawnRule {
     pub(super) randomize: Option<Perturbation>,
     /// The share of spawns `randomize` draws for (below 1, a draw decides; at 1, none).
     pub(super) randomize_share: f32,
+    /// The jitter of the ego's start (`EnvConfig::spawn_jitter`), drawn at every spawn that
+    /// is not a replay.
+    pub(super) jitter: Option<StartJitter>,
 }
 
 /// A new episode in `slot`: a spawn drawn from its generator. In a race, the paper's stage-2 spawn
@@ -61,7 +64,7 @@ pub(super) struct SpawnRule {
 /// env's recent gate passes, with that step's previous action; and of the spawns that are
 /// neither replayed nor stage-1, a share `stage2_fraction` is the ego's or the opponent's
 /// stage-2 spawn (at rest). A share of 0 draws no random number, so configs without it keep
-/// their streams.
+/// their streams. With `jitter`, the ego's place (not a replay's) is then jittered.
 ///
 /// With `randomize`, the ego's airframe and latency are then drawn (from the slot's own
 /// randomisation generator: the spawns stay those of the unrandomised envs), and the
@@ -138,6 +141,9 @@ fn place(world: &World, progress: &TrackProgress, rule: &SpawnRule, slot: &mut S
         let speed = slot.rng.random_range(0.0..rule.max_speed_mps);
         let forward = spawn.state.attitude.rotate(Vec3::new(1.0, 0.0, 0.0));
         spawn.state.velocity_mps = forward.scale(speed);
+    }
+    if let Some(j) = &rule.jitter {
+        spawn.state = j.apply(&spawn.state, &mut slot.rng);
     }
     slot.drones = [Drone::spawned(spawn), Drone::spawned(opponent)];
     slot.spawn_segment = slot

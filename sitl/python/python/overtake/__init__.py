@@ -78,6 +78,7 @@ def make_vec_env(
     policy: str | os.PathLike[str] | Policy | None = None,
     randomize: str | None = None,
     randomize_share: float = 1.0,
+    spawn_jitter: str | None = None,
 ) -> OvertakeVecEnv:
     """``num_envs`` auto-resetting environments of a time trial or a race.
 
@@ -140,6 +141,9 @@ def make_vec_env(
             every step (docs/DESIGN.md "Perturbations"). ``None``: the nominal world.
         randomize_share: the share of spawns ``randomize`` draws for, in [0, 1] (the others
             fly the nominal airframe; host-trainer's ``env.randomize_share``).
+        spawn_jitter: jitter of the ego's starts (host-trainer's ``env.spawn_jitter``), in
+            ``sitl eval --jitter``'s words: ``""`` for ±5 cm, ±5° and ±0.2 m/s per axis, or
+            ``"pos=M,att-deg=DEG,vel=MPS"``. ``None``: the spawns exactly.
         policy: a blob path or :class:`Policy`: build the envs that policy observes (its
             layout, velocity scale and fold). A setting passed as well that contradicts it
             is a ``ValueError``.
@@ -183,6 +187,7 @@ def make_vec_env(
         reward_weights=reward_weights,
         randomize=randomize,
         randomize_share=randomize_share,
+        spawn_jitter=spawn_jitter,
         **env_settings,
     )
     return OvertakeVecEnv(env, task=task)
