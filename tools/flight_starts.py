@@ -16,7 +16,6 @@ episode is not counted as ended.
 """
 
 import argparse
-import collections
 import json
 import sys
 
@@ -25,8 +24,8 @@ CLUSTER_M = 0.5
 
 
 def flights(trace):
-    """(start position of the ego, steps flown, ended by a restart, ego z at the last step)
-    for every flight of every episode."""
+    """(start position of the ego, steps flown, ended by a restart, ego z at the last step,
+    control step in s) for every flight of every episode."""
     for e in trace["episodes"]:
         n = len(e["ego_m"])
         starts = [0] + list(e["respawns"])
@@ -40,7 +39,7 @@ def flights(trace):
 def table(trace, early_s):
     """Rows keyed by start point: starts within CLUSTER_M of a row's first start share it
     (the jitter moves a start by a few centimetres)."""
-    by_start = collections.OrderedDict()
+    by_start = {}
     for start, steps, ended, last_z, dt in flights(trace):
         key = next((k for k in by_start if abs(k[0] - start[0]) < CLUSTER_M
                     and abs(k[1] - start[1]) < CLUSTER_M), (start[0], start[1]))

@@ -72,9 +72,8 @@ pub struct Validation {
 /// (unperturbed when it names none), averaged over them.
 pub fn selection_eval(blob: &[u8], preset: Preset, select: &Selection) -> Option<Validation> {
     let spec = PilotSpec::from_blob("training", blob).ok()?;
-    let nominal = [sitl::perturb::Perturbation::NONE];
-    let conditions = if select.perturb.is_empty() {
-        nominal.to_vec()
+    let conditions: Vec<sitl::perturb::Perturbation> = if select.perturb.is_empty() {
+        vec![sitl::perturb::Perturbation::NONE]
     } else {
         select.perturb.iter().map(|p| *p.value()).collect()
     };
@@ -85,7 +84,7 @@ pub fn selection_eval(blob: &[u8], preset: Preset, select: &Selection) -> Option
         .unwrap_or_default();
     let reports: Vec<Report> = conditions
         .into_iter()
-        .map(|perturbation: sitl::perturb::Perturbation| {
+        .map(|perturbation| {
             let eval = EvalConfig {
                 preset,
                 episodes: select.episodes,

@@ -526,18 +526,26 @@ impl PerturbSpec {
     }
 }
 
-impl Serialize for PerturbSpec {
-    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.serialize_str(&self.text)
-    }
+/// (De)serialises a spec type as its `text`, parsed back by its `parse` (whose error is
+/// the deserialiser's): [`PerturbSpec`] and [`JitterSpec`].
+macro_rules! serde_as_text {
+    ($spec:ty) => {
+        impl Serialize for $spec {
+            fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+                s.serialize_str(&self.text)
+            }
+        }
+
+        impl<'de> Deserialize<'de> for $spec {
+            fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+                let text = String::deserialize(d)?;
+                Self::parse(&text).map_err(serde::de::Error::custom)
+            }
+        }
+    };
 }
 
-impl<'de> Deserialize<'de> for PerturbSpec {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        let text = String::deserialize(d)?;
-        Self::parse(&text).map_err(serde::de::Error::custom)
-    }
-}
+serde_as_text!(PerturbSpec);
 
 /// A [`StartJitter`] as a config writes it: `sitl eval --jitter`'s value (`""` for
 /// [`StartJitter::STANDARD`], else `pos=M,att-deg=DEG,vel=MPS`), kept as written (it is part
@@ -563,18 +571,7 @@ impl JitterSpec {
     }
 }
 
-impl Serialize for JitterSpec {
-    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.serialize_str(&self.text)
-    }
-}
-
-impl<'de> Deserialize<'de> for JitterSpec {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        let text = String::deserialize(d)?;
-        Self::parse(&text).map_err(serde::de::Error::custom)
-    }
-}
+serde_as_text!(JitterSpec);
 
 /// The comma-separated `KEY=VALUE` items of `spec` (empty items skipped); an item without
 /// `=` is an error, prefixed with `what`.
