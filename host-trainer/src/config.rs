@@ -302,10 +302,12 @@ impl KeepBestBy {
     }
 }
 
-/// The validation `run.keep_best` ranks a time trial's candidates by (`run.select`): the
-/// deterministic policy flown `episodes` × 45 s from `spawn` (seed `seed`) at every
-/// evaluation from `from_iteration` on. The order: the higher success rate, then the fewer
-/// crashes per second, then the shorter mean lap, then the earlier iteration.
+/// The validation `run.keep_best` ranks candidates by (`run.select`): the deterministic
+/// policy flown `episodes` × 45 s from `spawn` (seed `seed`) at every evaluation from
+/// `from_iteration` on, alone in a time trial and against the config's opponent in a race.
+/// The order: with `referee_floor`, the candidates whose referee reached it first; then the
+/// higher success rate, the fewer crashes per second, the shorter mean lap, the earlier
+/// iteration.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Selection {
@@ -337,6 +339,12 @@ pub struct Selection {
     /// from. Absent: the spawns exactly.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub jitter: Option<sitl::perturb::JitterSpec>,
+    /// The referee's success (the in-training evaluation: a race's `run.eval_races` exact
+    /// races) a candidate must reach to rank before those that do not, e.g. issue "race"'s
+    /// 0.9: a race ego chosen for its robustness under `perturb` must still fly the nominal
+    /// races. Absent: the referee does not rank.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub referee_floor: Option<f64>,
 }
 
 /// `run.select.perturb` as a config writes it: one `--perturb` text or a list of them. One

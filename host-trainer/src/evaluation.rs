@@ -15,10 +15,7 @@ use sitl::referee::SpawnMode;
 /// 45 s races against the config's opponent from stage-2 spawns (seed `run.eval_seed`).
 pub fn referee_eval(blob: &[u8], preset: Preset, config: &TrainConfig) -> Option<Report> {
     let spec = PilotSpec::from_blob("training", blob).ok()?;
-    let opponent = match &config.env.race {
-        None => None,
-        Some(r) => Some(PilotSpec::load(&r.opponent.to_string_lossy(), &preset).ok()?),
-    };
+    let opponent = race_opponent(preset, config)?;
     let eval = EvalConfig {
         preset,
         episodes: if opponent.is_some() {
@@ -36,6 +33,17 @@ pub fn referee_eval(blob: &[u8], preset: Preset, config: &TrainConfig) -> Option
         perturbation: eval_perturbation(config, opponent.is_some()),
     };
     Some(report(&spec, opponent.as_ref(), &eval))
+}
+
+/// The opponent a race's evaluations fly against (`Some(None)` in a time trial); `None` if
+/// its blob cannot be loaded.
+pub fn race_opponent(preset: Preset, config: &TrainConfig) -> Option<Option<PilotSpec>> {
+    match &config.env.race {
+        None => Some(None),
+        Some(r) => PilotSpec::load(&r.opponent.to_string_lossy(), &preset)
+            .ok()
+            .map(Some),
+    }
 }
 
 /// The referee's perturbation during training: the standard start jitter for a race with
@@ -67,10 +75,15 @@ pub struct Validation {
     pub mean_lap_s: Option<f64>,
 }
 
-/// The validation of `run.select`: the deterministic policy flown `episodes` × 45 s alone
-/// from the selection's spawns (seed `seed`, jittered with `jitter`) under each of `perturb`
-/// (unperturbed when it names none), averaged over them.
-pub fn selection_eval(blob: &[u8], preset: Preset, select: &Selection) -> Option<Validation> {
+/// The validation of `run.select`: the deterministic policy flown `episodes` × 45 s from
+/// the selection's spawns (seed `seed`, jittered with `jitter`) under each of `perturb`
+/// (unperturbed when it names none), alone or racing `opponent`, averaged over them.
+pub fn selection_eval(
+    blob: &[u8],
+    preset: Preset,
+    select: &Selection,
+    opponent: Option<&PilotSpec>,
+) -> Option<Validation> {
     let spec = PilotSpec::from_blob("training", blob).ok()?;
     let conditions: Vec<sitl::perturb::Perturbation> = if select.perturb.is_empty() {
         vec![sitl::perturb::Perturbation::NONE]
@@ -96,7 +109,7 @@ pub fn selection_eval(blob: &[u8], preset: Preset, select: &Selection) -> Option
                     ..perturbation
                 },
             };
-            report(&spec, None, &eval)
+            report(&spec, opponent, &eval)
         })
         .collect();
     let n = reports.len() as f64;
@@ -122,7 +135,8 @@ fn score(success: Option<f64>, crashes: Option<f64>, lap_s: Option<f64>) -> (f64
 /// `run.select`, the in-training referee's success and crashes (with `run.keep_best_by =
 /// "win-rate"`: whether the success reaches [`RACE_SUCCESS_FLOOR`], then the win rate, the
 /// success and the crashes; below the floor the success and crashes); with it, the
-/// validation's success, crashes and mean lap, from `run.select.from_iteration` on.
+/// validation's success, crashes and mean lap, from `run.select.from_iteration` on, those
+/// whose referee reached `run.select.referee_floor` first.
 fn candidate_score(m: &IterationMetrics, run: &RunConfig) -> Option<(f64, f64, f64, f64)> {
     let plain = |(a, b, c)| (0.0, a, b, c);
     match &run.select {
@@ -139,11 +153,16 @@ fn candidate_score(m: &IterationMetrics, run: &RunConfig) -> Option<(f64, f64, f
             .eval_success_rate
             .map(|_| plain(score(m.eval_success_rate, m.eval_crash_rate, None))),
         Some(s) if m.iteration >= s.from_iteration => m.select_success_rate.map(|_| {
-            plain(score(
+            let (success, crashes, lap) = score(
                 m.select_success_rate,
                 m.select_crash_rate,
                 m.select_mean_lap_s,
-            ))
+            );
+            let floor = match s.referee_floor {
+                Some(f) if m.eval_success_rate.unwrap_or(f64::NEG_INFINITY) < f => 0.0,
+                _ => 1.0,
+            };
+            (floor, success, crashes, lap)
         }),
         Some(_) => None,
     }
@@ -249,6 +268,7 @@ mod tests {
                 from_iteration: 20,
                 perturb: Vec::new(),
                 jitter: None,
+                referee_floor: None,
             }),
             ..RunConfig::default()
         };
@@ -306,16 +326,17 @@ mod tests {
                 .map(|p| sitl::perturb::PerturbSpec::parse(p).unwrap())
                 .collect(),
             jitter: None,
+            referee_floor: None,
         };
         let preset = sitl::dynamics::Preset::paper();
-        let nominal = selection_eval(&blob, preset, &select(&[])).unwrap();
-        let late = selection_eval(&blob, preset, &select(&["latency=1"])).unwrap();
-        let both = selection_eval(&blob, preset, &select(&["", "latency=1"])).unwrap();
+        let nominal = selection_eval(&blob, preset, &select(&[]), None).unwrap();
+        let late = selection_eval(&blob, preset, &select(&["latency=1"]), None).unwrap();
+        let both = selection_eval(&blob, preset, &select(&["", "latency=1"]), None).unwrap();
         let jittered = Selection {
             jitter: Some(sitl::perturb::JitterSpec::parse("").unwrap()),
             ..select(&[])
         };
-        let jittered = selection_eval(&blob, preset, &jittered).unwrap();
+        let jittered = selection_eval(&blob, preset, &jittered, None).unwrap();
         assert_ne!(jittered, nominal, "the jitter moved no start");
         assert!(nominal.success_rate > 0.9, "{}", nominal.success_rate);
         assert_eq!(
@@ -332,6 +353,88 @@ mod tests {
             late.crash_rate,
             nominal.crash_rate
         );
+    }
+
+    /// A race's validation races the opponent: `stage1_nominal.blob` validated from stage-2
+    /// starts against itself is another flight than alone (the opponent holds the line
+    /// ahead or beside it), and the same opponent gives the same validation.
+    #[test]
+    fn a_race_selection_races_its_opponent() {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../policies/stage1_nominal.blob"
+        );
+        let blob = std::fs::read(path).unwrap();
+        let preset = sitl::dynamics::Preset::paper();
+        let opponent = PilotSpec::load(path, &preset).unwrap();
+        let select = Selection {
+            spawn: SpawnMode::Stage2,
+            episodes: 6,
+            seed: 7,
+            from_iteration: 0,
+            perturb: Vec::new(),
+            jitter: None,
+            referee_floor: Some(0.9),
+        };
+        let alone = selection_eval(&blob, preset, &select, None).unwrap();
+        let raced = selection_eval(&blob, preset, &select, Some(&opponent)).unwrap();
+        assert_ne!(alone, raced, "the opponent changed nothing");
+        assert_eq!(
+            selection_eval(&blob, preset, &select, Some(&opponent)),
+            Some(raced)
+        );
+    }
+
+    /// `run.select.referee_floor`: the candidates whose referee reached the floor rank first,
+    /// however well the others validate; among them (and among those below) the validation
+    /// ranks.
+    #[test]
+    fn a_referee_floor_ranks_the_candidates_that_reach_it_first() {
+        let eval = |iteration, referee: f64, validation: f64| IterationMetrics {
+            iteration,
+            eval_success_rate: Some(referee),
+            eval_crash_rate: Some(0.0),
+            select_success_rate: Some(validation),
+            select_crash_rate: Some(0.0),
+            select_mean_lap_s: Some(7.9),
+            ..IterationMetrics::default()
+        };
+        let run = |floor| RunConfig {
+            keep_best: true,
+            select: Some(Selection {
+                spawn: SpawnMode::Stage2,
+                episodes: 10,
+                seed: 7,
+                from_iteration: 0,
+                perturb: Vec::new(),
+                jitter: None,
+                referee_floor: floor,
+            }),
+            ..RunConfig::default()
+        };
+        let history = [
+            eval(10, 0.80, 0.99),
+            eval(20, 0.95, 0.91),
+            eval(30, 0.90, 0.93),
+            eval(40, 1.00, 0.92),
+        ];
+        let best =
+            |h: &[IterationMetrics], floor| best_evaluation(h, &run(floor)).map(|m| m.iteration);
+        assert_eq!(best(&history, None), Some(10));
+        assert_eq!(
+            best(&history, Some(0.9)),
+            Some(30),
+            "the floor is reached at it"
+        );
+        assert_eq!(best(&history, Some(0.96)), Some(40));
+        // None reaches it: the validation ranks them all.
+        assert_eq!(best(&history[..3], Some(0.99)), Some(10));
+        // A candidate the referee did not score is below the floor.
+        let unscored = IterationMetrics {
+            eval_success_rate: None,
+            ..eval(50, 0.0, 1.0)
+        };
+        assert_eq!(best(&[unscored, history[1].clone()], Some(0.9)), Some(20));
     }
 
     #[test]

@@ -244,13 +244,27 @@ fn train(config: &Path, seed: Option<u64>, options: RunOptions) -> Result<(), St
         Some(b) => {
             match (&cfg.run.select, b.select_success_rate) {
                 (Some(sel), Some(sr)) => println!(
-                    "exported the actor of iteration {} (run.keep_best: the best of iterations {}-{} on {} {} spawns, seed {}: success {sr:.3}, crashes {:.3} /s, mean lap {})",
+                    "exported the actor of iteration {} (run.keep_best: the best of iterations {}-{} on {} {} {}{}, seed {}{}: success {sr:.3}, crashes {:.3} /s, mean lap {})",
                     b.iteration,
                     sel.from_iteration,
                     s.iterations,
                     sel.episodes,
                     sel.spawn.name(),
+                    if cfg.env.race.is_some() {
+                        "races"
+                    } else {
+                        "spawns"
+                    },
+                    match sel.perturb.len() {
+                        0 => String::new(),
+                        1 => " under its perturbation".to_string(),
+                        n => format!(" under each of {n} perturbations"),
+                    },
                     sel.seed,
+                    match sel.referee_floor {
+                        Some(f) => format!(", the referee at {f} or more first"),
+                        None => String::new(),
+                    },
                     b.select_crash_rate.unwrap_or(0.0),
                     lap_text(b.select_mean_lap_s)
                 ),

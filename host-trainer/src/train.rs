@@ -6,7 +6,9 @@
 
 use crate::config::{CriticKind, PpoConfig, TrainConfig};
 use crate::error::TrainError;
-use crate::evaluation::{best_evaluation, keep_best_prefers, referee_eval, selection_eval};
+use crate::evaluation::{
+    best_evaluation, keep_best_prefers, race_opponent, referee_eval, selection_eval,
+};
 use crate::export::{actor_blob, actor_from_blob, actor_safetensors, actor_transplanted_from};
 use crate::guard::guard_update;
 use crate::imitation::Imitate;
@@ -525,7 +527,8 @@ fn evaluate<A: PolicyNet, C: ValueNet>(
     }
     if let Some(select) = &config.run.select
         && state.iteration >= select.from_iteration
-        && let Some(r) = selection_eval(&blob, config.preset(), select)
+        && let Some(opponent) = race_opponent(config.preset(), config)
+        && let Some(r) = selection_eval(&blob, config.preset(), select, opponent.as_ref())
     {
         m.select_success_rate = Some(r.success_rate);
         m.select_crash_rate = Some(r.crash_rate);

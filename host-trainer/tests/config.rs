@@ -211,11 +211,34 @@ fn a_selection_is_checked_and_hashed() {
         .unwrap_err()
         .to_string();
     assert!(e.contains("lag"), "{e}");
-    // A race (keep_best on) ranks its races; a selection there is refused.
+    // A race (keep_best on) may rank by a selection, raced against its opponent, with a
+    // referee floor within 0-1; not also by win rate.
     let race = include_str!("../configs/experiments/stage2_B.toml")
-        .replace("[env]", &format!("{select}\n\n[env]"));
-    let e = TrainConfig::parse(&race).unwrap_err().to_string();
-    assert!(e.contains("time trials"), "{e}");
+        .replace("[env]", &format!("{select}\n\n[env]"))
+        .replace("from_iteration = 2000 }", "from_iteration = 40 }");
+    let plain = TrainConfig::parse(&race).unwrap();
+    let floored = |f: &str| {
+        race.replace(
+            "from_iteration = 40 }",
+            &format!("from_iteration = 40, referee_floor = {f} }}"),
+        )
+    };
+    let with_floor = TrainConfig::parse(&floored("0.9")).unwrap();
+    assert_eq!(
+        with_floor.run.select.as_ref().unwrap().referee_floor,
+        Some(0.9)
+    );
+    assert_ne!(plain.hash(), with_floor.hash());
+    for bad in ["1.5", "-0.1", "nan"] {
+        let e = TrainConfig::parse(&floored(bad)).unwrap_err().to_string();
+        assert!(e.contains("referee_floor"), "{bad}: {e}");
+    }
+    let by_win = race.replace(
+        "keep_best = true",
+        "keep_best = true\nkeep_best_by = \"win-rate\"",
+    );
+    let e = TrainConfig::parse(&by_win).unwrap_err().to_string();
+    assert!(e.contains("two rankings"), "{e}");
 }
 
 #[test]

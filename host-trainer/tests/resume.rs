@@ -200,6 +200,7 @@ fn a_run_killed_at_any_iteration_even_inside_the_validation_resumes_bit_for_bit(
         from_iteration: 2,
         perturb: Vec::new(),
         jitter: None,
+        referee_floor: None,
     });
     config.run.keep_best = true;
     TrainConfig::parse(&toml::to_string(&config).unwrap()).unwrap();
@@ -382,6 +383,7 @@ fn a_selection_exports_the_validations_best_across_a_resume() {
         from_iteration: 3,
         perturb: Vec::new(),
         jitter: None,
+        referee_floor: None,
     };
     config.run.select = Some(select.clone());
     config.env.num_envs = 64;

@@ -65,6 +65,9 @@ pub struct Point {
     pub referee_sustained: Option<f64>,
     /// Races: the referee's win rate (docs/DESIGN.md "Metrics"), where evaluated.
     pub referee_win_rate: Option<f64>,
+    /// The success of `run.select`'s validation (the mean over its perturbations), where
+    /// validated.
+    pub validation_success: Option<f64>,
 }
 
 fn number(v: &Value, keys: &[&str]) -> Option<f64> {
@@ -88,6 +91,7 @@ pub fn point(v: &Value) -> Option<Point> {
         referee_overtakes: number(v, &["eval_overtakes"]),
         referee_sustained: number(v, &["eval_sustained_overtakes"]),
         referee_win_rate: number(v, &["eval_win_rate"]),
+        validation_success: number(v, &["select_success_rate"]),
     })
 }
 
@@ -192,6 +196,17 @@ pub fn page(runs: &[(String, Vec<Point>)]) -> String {
             &series(&|p| p.sigma.map(|s| (p.samples * m, s))),
         ),
     ];
+    if runs
+        .iter()
+        .any(|(_, p)| p.iter().any(|p| p.validation_success.is_some()))
+    {
+        charts.push(line_chart(
+            "validation success (run.select: what keep_best ranks by)",
+            samples,
+            "success (mean over the validation's perturbations)",
+            &series(&|p| p.validation_success.map(|s| (p.samples * m, s))),
+        ));
+    }
     let races = runs
         .iter()
         .any(|(_, p)| p.iter().any(|p| p.referee_overtakes.is_some()));
@@ -341,5 +356,14 @@ mod tests {
         assert!(svg.contains("referee win rate against wall-clock"));
         assert!(svg.contains("G: sustained (lead held 2 s)"));
         assert!(!svg.contains("no gate"));
+        assert!(!svg.contains("validation success"));
+        // A run ranked by run.select also gets its validation's chart.
+        let points = parse_metrics(
+            r#"{"samples":5e6,"wall_s":60,"eval_success_rate":0.9,"select_success_rate":0.91}"#,
+            "m",
+        )
+        .unwrap();
+        assert_eq!(points[0].validation_success, Some(0.91));
+        assert!(page(&[("G".into(), points)]).contains("validation success"));
     }
 }

@@ -70,6 +70,7 @@ impl TrainConfig {
                     from_iteration: 2000,
                     perturb: Vec::new(),
                     jitter: None,
+                    referee_floor: None,
                 }),
                 ..RunConfig::default()
             },

@@ -79,8 +79,15 @@ fn run(c: &TrainConfig) -> Result<(), ConfigError> {
         if !c.run.keep_best {
             return bad("run.select ranks the candidates of run.keep_best; set keep_best = true");
         }
-        if c.env.race.is_some() {
-            return bad("run.select is for time trials; a race ranks its run.eval_races races");
+        if c.run.keep_best_by == KeepBestBy::WinRate {
+            return bad(
+                "run.select and run.keep_best_by = \"win-rate\" are two rankings; keep one",
+            );
+        }
+        if let Some(f) = s.referee_floor
+            && !(0.0..=1.0).contains(&f)
+        {
+            return bad("run.select.referee_floor is a success rate, within 0-1");
         }
         if s.spawn == sitl::referee::SpawnMode::Stage1 {
             return bad(
