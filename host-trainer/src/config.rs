@@ -305,7 +305,8 @@ impl KeepBestBy {
 /// The validation `run.keep_best` ranks candidates by (`run.select`): the deterministic
 /// policy flown `episodes` × 45 s from `spawn` (seed `seed`) at every evaluation from
 /// `from_iteration` on, alone in a time trial and against the config's opponent in a race.
-/// The order: with `referee_floor`, the candidates whose referee reached it first; then the
+/// The order: with `referee_floor` or `race_bar`, the candidates whose referee met them first;
+/// then the
 /// higher success rate, the fewer crashes per second, the shorter mean lap, the earlier
 /// iteration.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -345,6 +346,13 @@ pub struct Selection {
     /// races. Absent: the referee does not rank.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub referee_floor: Option<f64>,
+    /// Races only: a candidate ranks before those that do not only if its referee's races
+    /// also meet issue "race"'s per-race bar ([`sitl::eval::RaceBar::RACE`]: success >= 0.9,
+    /// crashes <= 0.1 /s, best lap <= 8.0 s, half of the overtakes and >= 16 per 20 races
+    /// sustained, at >= 3 gates), so that the actor chosen for its robustness still overtakes
+    /// as the shipped ego must. With `referee_floor`, a candidate must meet both.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub race_bar: bool,
 }
 
 /// `run.select.perturb` as a config writes it: one `--perturb` text or a list of them. One

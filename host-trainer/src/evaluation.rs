@@ -5,7 +5,7 @@
 use crate::config::{KeepBestBy, RACE_SUCCESS_FLOOR, RunConfig, Selection, TrainConfig};
 use crate::metrics::IterationMetrics;
 use sitl::dynamics::Preset;
-use sitl::eval::{EvalConfig, Report, report};
+use sitl::eval::{EvalConfig, RaceBar, RaceOutcome, Report, report};
 use sitl::pilot::PilotSpec;
 use sitl::referee::SpawnMode;
 
@@ -136,7 +136,7 @@ fn score(success: Option<f64>, crashes: Option<f64>, lap_s: Option<f64>) -> (f64
 /// "win-rate"`: whether the success reaches [`RACE_SUCCESS_FLOOR`], then the win rate, the
 /// success and the crashes; below the floor the success and crashes); with it, the
 /// validation's success, crashes and mean lap, from `run.select.from_iteration` on, those
-/// whose referee reached `run.select.referee_floor` first.
+/// whose referee reached `run.select.referee_floor` (and met `run.select.race_bar`) first.
 fn candidate_score(m: &IterationMetrics, run: &RunConfig) -> Option<(f64, f64, f64, f64)> {
     let plain = |(a, b, c)| (0.0, a, b, c);
     match &run.select {
@@ -158,14 +158,35 @@ fn candidate_score(m: &IterationMetrics, run: &RunConfig) -> Option<(f64, f64, f
                 m.select_crash_rate,
                 m.select_mean_lap_s,
             );
-            let floor = match s.referee_floor {
-                Some(f) if m.eval_success_rate.unwrap_or(f64::NEG_INFINITY) < f => 0.0,
-                _ => 1.0,
-            };
-            (floor, success, crashes, lap)
+            let below_floor = s
+                .referee_floor
+                .is_some_and(|f| m.eval_success_rate.unwrap_or(f64::NEG_INFINITY) < f);
+            let misses_bar = s.race_bar && !meets_race_bar(m, run.eval_races);
+            let tier = if below_floor || misses_bar { 0.0 } else { 1.0 };
+            (tier, success, crashes, lap)
         }),
         Some(_) => None,
     }
+}
+
+/// Whether the referee's `races` races of evaluation `m` meet issue "race"'s per-race bar
+/// ([`RaceBar::RACE`]); an evaluation without a referee's race does not.
+pub fn meets_race_bar(m: &IterationMetrics, races: u32) -> bool {
+    race_outcome(m, races).is_some_and(|o| RaceBar::RACE.misses(&o).is_empty())
+}
+
+/// The referee's races of evaluation `m` as [`RaceBar`] reads them (`None` where `m` has no
+/// referee's race).
+pub fn race_outcome(m: &IterationMetrics, races: u32) -> Option<RaceOutcome> {
+    Some(RaceOutcome {
+        episodes: races,
+        success_rate: m.eval_success_rate?,
+        crash_rate: m.eval_crash_rate?,
+        best_lap_s: m.eval_best_lap_s,
+        overtakes: m.eval_overtakes?,
+        sustained_overtakes: m.eval_sustained_overtakes?,
+        overtakes_by_gate: m.eval_overtakes_by_gate.clone(),
+    })
 }
 
 /// Whether `m` becomes `run.keep_best`'s best over the current `best` (`None`: no candidate
@@ -269,6 +290,7 @@ mod tests {
                 perturb: Vec::new(),
                 jitter: None,
                 referee_floor: None,
+                race_bar: false,
             }),
             ..RunConfig::default()
         };
@@ -327,6 +349,7 @@ mod tests {
                 .collect(),
             jitter: None,
             referee_floor: None,
+            race_bar: false,
         };
         let preset = sitl::dynamics::Preset::paper();
         let nominal = selection_eval(&blob, preset, &select(&[]), None).unwrap();
@@ -375,6 +398,7 @@ mod tests {
             perturb: Vec::new(),
             jitter: None,
             referee_floor: Some(0.9),
+            race_bar: false,
         };
         let alone = selection_eval(&blob, preset, &select, None).unwrap();
         let raced = selection_eval(&blob, preset, &select, Some(&opponent)).unwrap();
@@ -409,6 +433,7 @@ mod tests {
                 perturb: Vec::new(),
                 jitter: None,
                 referee_floor: floor,
+                race_bar: false,
             }),
             ..RunConfig::default()
         };
@@ -435,6 +460,78 @@ mod tests {
             ..eval(50, 0.0, 1.0)
         };
         assert_eq!(best(&[unscored, history[1].clone()], Some(0.9)), Some(20));
+    }
+
+    /// `run.select.race_bar`: the candidates whose referee's races meet issue "race"'s
+    /// per-race bar rank first, whatever they validate; the bar scales with `run.eval_races`
+    /// and counts the gates the overtakes were held at, which the metrics line keeps.
+    #[test]
+    fn the_race_bar_ranks_the_candidates_whose_races_meet_it_first() {
+        use sitl::eval::GateOvertakes;
+        let gates = |held: &[u64]| -> Vec<GateOvertakes> {
+            held.iter()
+                .enumerate()
+                .map(|(gate, &sustained)| GateOvertakes {
+                    gate,
+                    overtakes: 2 * sustained,
+                    sustained,
+                })
+                .collect()
+        };
+        let eval = |iteration, held: &[u64], validation: f64| IterationMetrics {
+            iteration,
+            eval_success_rate: Some(0.97),
+            eval_crash_rate: Some(0.02),
+            eval_best_lap_s: Some(7.8),
+            eval_overtakes: Some(2 * held.iter().sum::<u64>()),
+            eval_sustained_overtakes: Some(held.iter().sum()),
+            eval_overtakes_by_gate: gates(held),
+            select_success_rate: Some(validation),
+            select_crash_rate: Some(0.0),
+            select_mean_lap_s: Some(7.9),
+            ..IterationMetrics::default()
+        };
+        let run = |race_bar, eval_races| RunConfig {
+            keep_best: true,
+            eval_races,
+            select: Some(Selection {
+                spawn: SpawnMode::Stage2,
+                episodes: 10,
+                seed: 7,
+                from_iteration: 0,
+                perturb: Vec::new(),
+                jitter: None,
+                referee_floor: None,
+                race_bar,
+            }),
+            ..RunConfig::default()
+        };
+        let history = [
+            eval(80, &[0, 0, 0, 0, 0, 18], 0.922),
+            eval(150, &[11, 0, 10, 0, 10], 0.908),
+            eval(160, &[9, 9], 0.93),
+            eval(170, &[6, 6, 6], 0.91),
+        ];
+        let best =
+            |race_bar, races| best_evaluation(&history, &run(race_bar, races)).map(|m| m.iteration);
+        assert_eq!(best(false, 20), Some(160), "the validation alone");
+        assert_eq!(best(true, 20), Some(170), "three gates and 16 per 20 races");
+        assert_eq!(best(true, 25), Some(150), "25 races need 20 sustained");
+        assert!(meets_race_bar(&history[1], 20) && !meets_race_bar(&history[0], 20));
+        // An evaluation that kept no gates (a metrics line from before they were recorded)
+        // does not meet the bar, and neither does one without a referee.
+        let unrecorded = IterationMetrics {
+            eval_overtakes_by_gate: Vec::new(),
+            ..history[1].clone()
+        };
+        assert!(!meets_race_bar(&unrecorded, 20));
+        assert!(!meets_race_bar(&IterationMetrics::default(), 20));
+        // The gates round-trip through metrics.jsonl.
+        let line = serde_json::to_string(&history[1]).unwrap();
+        assert_eq!(
+            serde_json::from_str::<IterationMetrics>(&line).unwrap(),
+            history[1]
+        );
     }
 
     #[test]

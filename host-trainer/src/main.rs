@@ -261,9 +261,15 @@ fn train(config: &Path, seed: Option<u64>, options: RunOptions) -> Result<(), St
                         n => format!(" under each of {n} perturbations"),
                     },
                     sel.seed,
-                    match sel.referee_floor {
-                        Some(f) => format!(", the referee at {f} or more first"),
-                        None => String::new(),
+                    match (sel.referee_floor, sel.race_bar) {
+                        (Some(f), true) => format!(
+                            ", the referee at {f} or more and its races meeting issue race's bar first"
+                        ),
+                        (Some(f), false) => format!(", the referee at {f} or more first"),
+                        (None, true) => {
+                            ", the referee's races meeting issue race's bar first".to_string()
+                        }
+                        (None, false) => String::new(),
                     },
                     b.select_crash_rate.unwrap_or(0.0),
                     lap_text(b.select_mean_lap_s)
@@ -289,7 +295,16 @@ fn train(config: &Path, seed: Option<u64>, options: RunOptions) -> Result<(), St
         };
         let overtakes = match (m.eval_overtakes, m.eval_sustained_overtakes) {
             (Some(o), Some(s)) => format!(
-                ", {o} overtakes ({s} sustained){}",
+                ", {o} overtakes ({s} sustained{}){}",
+                match m
+                    .eval_overtakes_by_gate
+                    .iter()
+                    .filter(|g| g.sustained > 0)
+                    .count()
+                {
+                    0 => String::new(),
+                    n => format!(" at {n} gates"),
+                },
                 m.eval_win_rate
                     .map(|w| format!(", win rate {w:.3}"))
                     .unwrap_or_default()

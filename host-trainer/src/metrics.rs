@@ -76,6 +76,10 @@ pub struct IterationMetrics {
     /// Referee, races only: the ego's win rate (docs/DESIGN.md "Metrics").
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub eval_win_rate: Option<f64>,
+    /// Referee, races only: where the overtakes were taken and held, by gate (gates
+    /// without an overtake left out), as `sitl eval --json` writes `overtakes_by_gate`.
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub eval_overtakes_by_gate: Vec<sitl::eval::GateOvertakes>,
     /// With `run.select`, from its first iteration: the validation's success rate (the
     /// deterministic policy, `run.select.episodes` × 45 s from its spawns).
     #[serde(skip_serializing_if = "Option::is_none", default)]

@@ -523,6 +523,7 @@ fn evaluate<A: PolicyNet, C: ValueNet>(
             m.eval_overtakes = Some(r.overtakes);
             m.eval_sustained_overtakes = Some(r.sustained_overtakes);
             m.eval_win_rate = r.win_rate;
+            m.eval_overtakes_by_gate = r.overtakes_by_gate;
         }
     }
     if let Some(select) = &config.run.select

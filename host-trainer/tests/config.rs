@@ -239,6 +239,31 @@ fn a_selection_is_checked_and_hashed() {
     );
     let e = TrainConfig::parse(&by_win).unwrap_err().to_string();
     assert!(e.contains("two rankings"), "{e}");
+    // [race]'s per-race bar: a race's, another config than without it; a time trial has
+    // no races to judge and is refused by name.
+    let with_bar = TrainConfig::parse(&race.replace(
+        "from_iteration = 40 }",
+        "from_iteration = 40, race_bar = true }",
+    ))
+    .unwrap();
+    assert!(with_bar.run.select.as_ref().unwrap().race_bar);
+    assert_ne!(plain.hash(), with_bar.hash());
+    assert_eq!(
+        TrainConfig::parse(&race.replace(
+            "from_iteration = 40 }",
+            "from_iteration = 40, race_bar = false }",
+        ))
+        .unwrap()
+        .hash(),
+        plain.hash()
+    );
+    let e = TrainConfig::parse(&STAGE1.replace(
+        "from_iteration = 2000 }",
+        "from_iteration = 2000, race_bar = true }",
+    ))
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("race_bar"), "{e}");
 }
 
 #[test]

@@ -201,6 +201,7 @@ fn a_run_killed_at_any_iteration_even_inside_the_validation_resumes_bit_for_bit(
         perturb: Vec::new(),
         jitter: None,
         referee_floor: None,
+        race_bar: false,
     });
     config.run.keep_best = true;
     TrainConfig::parse(&toml::to_string(&config).unwrap()).unwrap();
@@ -384,6 +385,7 @@ fn a_selection_exports_the_validations_best_across_a_resume() {
         perturb: Vec::new(),
         jitter: None,
         referee_floor: None,
+        race_bar: false,
     };
     config.run.select = Some(select.clone());
     config.env.num_envs = 64;

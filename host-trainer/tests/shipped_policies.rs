@@ -152,24 +152,9 @@ fn the_race_ego_meets_the_race_bars_on_both_seeds() {
                 .unwrap()
                 .contains("policies/stage1.blob")
         );
-        assert!(r["success_rate"].as_f64().unwrap() >= 0.9, "{r}");
-        assert!(r["crash_rate"].as_f64().unwrap() <= 0.1, "{r}");
-        assert!(r["best_lap_s"].as_f64().unwrap() <= 8.0, "{r}");
-        let (held, all) = (
-            r["sustained_overtakes"].as_u64().unwrap(),
-            r["overtakes"].as_u64().unwrap(),
-        );
-        assert!(
-            2 * held >= all && held * 20 >= 16 * races,
-            "{file}: {held}/{all}"
-        );
-        let held_at = r["overtakes_by_gate"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .filter(|g| g["sustained"].as_u64().unwrap() > 0)
-            .count();
-        assert!(held_at >= 3, "{r}");
+        let outcome: sitl::eval::RaceOutcome = serde_json::from_value(r.clone()).unwrap();
+        let misses = sitl::eval::RaceBar::RACE.misses(&outcome);
+        assert!(misses.is_empty(), "{file}: {misses:?}");
     }
 }
 

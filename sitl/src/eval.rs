@@ -9,7 +9,7 @@ use crate::stats::{ci95, mean};
 use crate::world::World;
 use firmware_core::track::CrashRules;
 use rayon::prelude::*;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// What to evaluate.
 #[derive(Clone, Debug)]
@@ -175,7 +175,7 @@ pub struct Report {
 }
 
 /// The overtakes taken while the ego flew towards one gate, all episodes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct GateOvertakes {
     /// The gate's index on the track.
     pub gate: usize,
@@ -210,6 +210,131 @@ impl GateOvertakes {
             })
             .filter(|g| g.overtakes > 0)
             .collect()
+    }
+}
+
+/// What a race report says about the ego's racing, as a [`RaceBar`] judges it: the fields
+/// of the same name in [`Report`] (its JSON reads into this), or an in-training referee's.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize)]
+pub struct RaceOutcome {
+    /// Races flown.
+    pub episodes: u32,
+    /// Gates passed / (passed + crashes), mean over races.
+    pub success_rate: f64,
+    /// Crashes per simulated second, mean over races.
+    pub crash_rate: f64,
+    /// Best lap (s); `None` without a complete lap.
+    pub best_lap_s: Option<f64>,
+    /// Overtakes of the opponent.
+    pub overtakes: u64,
+    /// Of them, held 2 s.
+    pub sustained_overtakes: u64,
+    /// The overtakes by gate.
+    #[serde(default)]
+    pub overtakes_by_gate: Vec<GateOvertakes>,
+}
+
+impl RaceOutcome {
+    /// The gates at which at least one overtake was sustained.
+    pub fn gates_held(&self) -> usize {
+        self.overtakes_by_gate
+            .iter()
+            .filter(|g| g.sustained > 0)
+            .count()
+    }
+}
+
+impl From<&Report> for RaceOutcome {
+    fn from(r: &Report) -> Self {
+        Self {
+            episodes: r.episodes,
+            success_rate: r.success_rate,
+            crash_rate: r.crash_rate,
+            best_lap_s: r.best_lap_s,
+            overtakes: r.overtakes,
+            sustained_overtakes: r.sustained_overtakes,
+            overtakes_by_gate: r.overtakes_by_gate.clone(),
+        }
+    }
+}
+
+/// A per-race bar on a set of exact races: how well the ego must fly, and how many of its
+/// overtakes it must hold, and where. [`RaceBar::RACE`] is issue "race"'s, which the shipped
+/// race ego meets on the races of seeds 0 and 2000 and which `run.select.race_bar` asks of a
+/// candidate's in-training referee.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RaceBar {
+    /// The least success rate.
+    pub min_success: f64,
+    /// The most crashes per simulated second.
+    pub max_crash_rate_per_s: f64,
+    /// The slowest best lap (s); a race set without a lap misses it.
+    pub max_best_lap_s: f64,
+    /// The least share of the overtakes held 2 s.
+    pub min_sustained_share: f64,
+    /// The least sustained overtakes per 20 races.
+    pub min_sustained_per_20_races: u64,
+    /// The least number of gates with a sustained overtake (one gate's passes are one
+    /// manoeuvre repeated, not overtaking).
+    pub min_gates_held: usize,
+}
+
+impl RaceBar {
+    /// Issue "race"'s bar: success >= 0.9, crashes <= 0.1 /s, best lap <= 8.0 s, at least
+    /// half of the overtakes sustained and >= 16 sustained per 20 races, at >= 3 gates.
+    pub const RACE: Self = Self {
+        min_success: 0.9,
+        max_crash_rate_per_s: 0.1,
+        max_best_lap_s: 8.0,
+        min_sustained_share: 0.5,
+        min_sustained_per_20_races: 16,
+        min_gates_held: 3,
+    };
+
+    /// What `o` misses of the bar, one line per miss, empty when it meets it.
+    pub fn misses(&self, o: &RaceOutcome) -> Vec<String> {
+        let mut misses = Vec::new();
+        if o.success_rate.is_nan() || o.success_rate < self.min_success {
+            misses.push(format!(
+                "success {:.3} < {}",
+                o.success_rate, self.min_success
+            ));
+        }
+        if o.crash_rate.is_nan() || o.crash_rate > self.max_crash_rate_per_s {
+            misses.push(format!(
+                "crashes {:.3} /s > {}",
+                o.crash_rate, self.max_crash_rate_per_s
+            ));
+        }
+        match o.best_lap_s {
+            Some(l) if l <= self.max_best_lap_s => {}
+            lap => misses.push(format!(
+                "best lap {} > {} s",
+                lap.map_or("DNF".to_string(), |l| format!("{l:.2} s")),
+                self.max_best_lap_s
+            )),
+        }
+        let held = o.sustained_overtakes;
+        if (held as f64) < self.min_sustained_share * o.overtakes as f64 {
+            misses.push(format!(
+                "{held} of {} overtakes sustained < {}",
+                o.overtakes, self.min_sustained_share
+            ));
+        }
+        if held * 20 < self.min_sustained_per_20_races * u64::from(o.episodes) {
+            misses.push(format!(
+                "{held} sustained overtakes in {} races < {} per 20",
+                o.episodes, self.min_sustained_per_20_races
+            ));
+        }
+        if o.gates_held() < self.min_gates_held {
+            misses.push(format!(
+                "overtakes held at {} gates < {}",
+                o.gates_held(),
+                self.min_gates_held
+            ));
+        }
+        misses
     }
 }
 

@@ -382,3 +382,80 @@ fn flights_are_won_ahead_at_the_end_or_by_the_opponent_crashing_alone() {
     );
     assert_eq!((m.flights, m.win_rate()), (0, None));
 }
+
+/// Issue "race"'s per-race bar names each miss, scales the sustained overtakes with the
+/// races, and counts only the gates where an overtake was held.
+#[test]
+fn the_race_bar_names_what_a_race_set_misses() {
+    use sitl::eval::{GateOvertakes, RaceBar, RaceOutcome};
+    let gate = |gate, overtakes, sustained| GateOvertakes {
+        gate,
+        overtakes,
+        sustained,
+    };
+    let meets = RaceOutcome {
+        episodes: 20,
+        success_rate: 0.95,
+        crash_rate: 0.02,
+        best_lap_s: Some(7.8),
+        overtakes: 30,
+        sustained_overtakes: 16,
+        overtakes_by_gate: vec![gate(0, 10, 6), gate(2, 10, 5), gate(4, 8, 5), gate(5, 2, 0)],
+    };
+    let bar = RaceBar::RACE;
+    assert!(bar.misses(&meets).is_empty(), "{:?}", bar.misses(&meets));
+    let misses = |change: &dyn Fn(&mut RaceOutcome)| {
+        let mut o = meets.clone();
+        change(&mut o);
+        bar.misses(&o)
+    };
+    let one = |change: &dyn Fn(&mut RaceOutcome), says: &str| {
+        let m = misses(change);
+        assert!(m.len() == 1 && m[0].contains(says), "{says}: {m:?}");
+    };
+    one(&|o| o.success_rate = 0.89, "success");
+    one(&|o| o.success_rate = f64::NAN, "success");
+    one(&|o| o.crash_rate = 0.11, "crashes");
+    one(&|o| o.best_lap_s = Some(8.01), "best lap");
+    one(&|o| o.best_lap_s = None, "DNF");
+    one(&|o| o.overtakes = 33, "of 33 overtakes");
+    // 16 held in 20 races meets the bar; in 21 races it does not (16.8 needed).
+    one(&|o| o.episodes = 21, "per 20");
+    // The same 16 at two gates: the third gate held no overtake.
+    one(
+        &|o| o.overtakes_by_gate = vec![gate(0, 15, 8), gate(2, 15, 8), gate(4, 1, 0)],
+        "2 gates",
+    );
+    assert_eq!(misses(&|o| *o = RaceOutcome::default()).len(), 3);
+}
+
+/// A race report's JSON reads into the [`sitl::eval::RaceOutcome`] the report gives, so the
+/// bar judges the committed `eval.json` files as the trainer judges its referee.
+#[test]
+fn a_race_reports_json_reads_into_its_race_outcome() {
+    use sitl::eval::{EvalConfig, RaceOutcome, Report, evaluate};
+    use sitl::pilot::PilotSpec;
+    let preset = Preset::paper();
+    let blob = |name: &str| format!("{}/../policies/{name}", env!("CARGO_MANIFEST_DIR"));
+    let ego = PilotSpec::load(&blob("stage2.blob"), &preset).unwrap();
+    let opponent = PilotSpec::load(&blob("stage1.blob"), &preset).unwrap();
+    let config = EvalConfig {
+        preset,
+        episodes: 4,
+        seconds: 45.0,
+        seed: 0,
+        spawn: None,
+        perturbation: sitl::perturb::Perturbation::NONE,
+    };
+    let metrics: Vec<_> = evaluate(&ego, Some(&opponent), &config, false)
+        .into_iter()
+        .map(|e| e.metrics)
+        .collect();
+    let report = Report::new(&ego, Some(&opponent), &config, &metrics);
+    let read: RaceOutcome = serde_json::from_str(&report.to_json()).unwrap();
+    assert_eq!(read, RaceOutcome::from(&report));
+    assert!(
+        read.overtakes > 0 && !read.overtakes_by_gate.is_empty(),
+        "{read:?}"
+    );
+}

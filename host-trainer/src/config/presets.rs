@@ -71,6 +71,7 @@ impl TrainConfig {
                     perturb: Vec::new(),
                     jitter: None,
                     referee_floor: None,
+                    race_bar: false,
                 }),
                 ..RunConfig::default()
             },

@@ -89,6 +89,11 @@ fn run(c: &TrainConfig) -> Result<(), ConfigError> {
         {
             return bad("run.select.referee_floor is a success rate, within 0-1");
         }
+        if s.race_bar && c.env.race.is_none() {
+            return bad(
+                "run.select.race_bar judges the referee's races; a time trial has none (add a [race] or drop it)",
+            );
+        }
         if s.spawn == sitl::referee::SpawnMode::Stage1 {
             return bad(
                 "run.select.spawn 'stage1' (along-track, stage2; the stage-1 spawn is the referee's)",
