@@ -95,25 +95,57 @@ fn the_robust_teacher_is_a_fork_of_the_stage1_run_and_faster_than_it() {
         name,
         "host-trainer/configs/experiments/stage1_robust_fast.toml",
     );
-    let stage1 = TrainConfig::load(&root().join("host-trainer/configs/stage1.toml")).unwrap();
-    let forked: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(root().join("policies/stage1_robust_fast/forked_from.json"))
-            .unwrap(),
-    )
-    .unwrap();
-    assert_eq!(
-        forked["config_hash"].as_str(),
-        Some(format!("{:016x}", stage1.hash()).as_str())
-    );
-    assert_eq!(
-        forked["iteration"].as_u64(),
-        Some(u64::from(stage1.run.iterations))
-    );
+    forked_at_the_end_of(name, "host-trainer/configs/stage1.toml");
     the_runs_choice(name, &config, iterations);
     assert!(folded(&raw));
     let dir = root().join("policies/stage1_robust_fast");
     let (_, fast) = flies_as_recorded(name, &raw, &dir.join("eval_jitter.json"));
     laps_faster_than(&fast, "stage1", "eval_jitter.json");
+}
+
+/// `policies/stage1_robust_jitter3.blob` (robust12g), the teacher of
+/// `experiments/stage2_robust_bar.toml`'s row G: `stage1_robust_fast`'s run forked at its last
+/// checkpoint and trained 400 iterations more from starts jittered three times as far as the
+/// robustness bar's. The committed config and seed, the validation's actor of the finished
+/// run, flying the jittered time trial as recorded.
+#[test]
+fn the_jittered_teacher_is_a_fork_of_the_robust_teacher_and_flies_as_recorded() {
+    let name = "stage1_robust_jitter3";
+    let (raw, config, iterations) = shipped_blob(
+        name,
+        "host-trainer/configs/experiments/stage1_robust_jitter3.toml",
+    );
+    forked_at_the_end_of(
+        name,
+        "host-trainer/configs/experiments/stage1_robust_fast.toml",
+    );
+    the_runs_choice(name, &config, iterations);
+    assert!(folded(&raw));
+    flies_as_recorded(
+        name,
+        &raw,
+        &root().join("policies/stage1_robust_jitter3/eval_jitter.json"),
+    );
+}
+
+/// `policies/{name}/forked_from.json` names the last checkpoint of a run of the config at
+/// `parent` (from the repository root): its hash and its final iteration.
+fn forked_at_the_end_of(name: &str, parent: &str) {
+    let parent = TrainConfig::load(&root().join(parent)).unwrap();
+    let forked: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root().join(format!("policies/{name}/forked_from.json"))).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(
+        forked["config_hash"].as_str(),
+        Some(format!("{:016x}", parent.hash()).as_str()),
+        "{name}"
+    );
+    assert_eq!(
+        forked["iteration"].as_u64(),
+        Some(u64::from(parent.run.iterations)),
+        "{name}"
+    );
 }
 
 /// `policies/stage2.blob`, what `sitl race` flies, against `stage1.blob` on the 20
