@@ -305,10 +305,9 @@ impl KeepBestBy {
 /// The validation `run.keep_best` ranks candidates by (`run.select`): the deterministic
 /// policy flown `episodes` × 45 s from `spawn` (seed `seed`) at every evaluation from
 /// `from_iteration` on, alone in a time trial and against the config's opponent in a race.
-/// The order: with `referee_floor` or `race_bar`, the candidates whose referee met them first;
-/// then the
-/// higher success rate, the fewer crashes per second, the shorter mean lap, the earlier
-/// iteration.
+/// The order: with `referee_floor` or `race_bar`, the candidates whose referee met them
+/// first; then the higher success rate, the fewer crashes per second, the shorter mean lap,
+/// the earlier iteration.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Selection {

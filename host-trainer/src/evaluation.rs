@@ -171,13 +171,13 @@ fn candidate_score(m: &IterationMetrics, run: &RunConfig) -> Option<(f64, f64, f
 
 /// Whether the referee's `races` races of evaluation `m` meet issue "race"'s per-race bar
 /// ([`RaceBar::RACE`]); an evaluation without a referee's race does not.
-pub fn meets_race_bar(m: &IterationMetrics, races: u32) -> bool {
+fn meets_race_bar(m: &IterationMetrics, races: u32) -> bool {
     race_outcome(m, races).is_some_and(|o| RaceBar::RACE.misses(&o).is_empty())
 }
 
 /// The referee's races of evaluation `m` as [`RaceBar`] reads them (`None` where `m` has no
 /// referee's race).
-pub fn race_outcome(m: &IterationMetrics, races: u32) -> Option<RaceOutcome> {
+fn race_outcome(m: &IterationMetrics, races: u32) -> Option<RaceOutcome> {
     Some(RaceOutcome {
         episodes: races,
         success_rate: m.eval_success_rate?,
@@ -409,6 +409,26 @@ mod tests {
         );
     }
 
+    /// A race run keeping the best of every evaluation, validated from 10 stage-2 spawns,
+    /// with `referee_floor` and `race_bar` over `eval_races` referee races.
+    fn ranked_by_referee(referee_floor: Option<f64>, race_bar: bool, eval_races: u32) -> RunConfig {
+        RunConfig {
+            keep_best: true,
+            eval_races,
+            select: Some(Selection {
+                spawn: SpawnMode::Stage2,
+                episodes: 10,
+                seed: 7,
+                from_iteration: 0,
+                perturb: Vec::new(),
+                jitter: None,
+                referee_floor,
+                race_bar,
+            }),
+            ..RunConfig::default()
+        }
+    }
+
     /// `run.select.referee_floor`: the candidates whose referee reached the floor rank first,
     /// however well the others validate; among them (and among those below) the validation
     /// ranks.
@@ -423,20 +443,7 @@ mod tests {
             select_mean_lap_s: Some(7.9),
             ..IterationMetrics::default()
         };
-        let run = |floor| RunConfig {
-            keep_best: true,
-            select: Some(Selection {
-                spawn: SpawnMode::Stage2,
-                episodes: 10,
-                seed: 7,
-                from_iteration: 0,
-                perturb: Vec::new(),
-                jitter: None,
-                referee_floor: floor,
-                race_bar: false,
-            }),
-            ..RunConfig::default()
-        };
+        let run = |floor| ranked_by_referee(floor, false, 20);
         let history = [
             eval(10, 0.80, 0.99),
             eval(20, 0.95, 0.91),
@@ -491,21 +498,7 @@ mod tests {
             select_mean_lap_s: Some(7.9),
             ..IterationMetrics::default()
         };
-        let run = |race_bar, eval_races| RunConfig {
-            keep_best: true,
-            eval_races,
-            select: Some(Selection {
-                spawn: SpawnMode::Stage2,
-                episodes: 10,
-                seed: 7,
-                from_iteration: 0,
-                perturb: Vec::new(),
-                jitter: None,
-                referee_floor: None,
-                race_bar,
-            }),
-            ..RunConfig::default()
-        };
+        let run = |race_bar, eval_races| ranked_by_referee(None, race_bar, eval_races);
         let history = [
             eval(80, &[0, 0, 0, 0, 0, 18], 0.922),
             eval(150, &[11, 0, 10, 0, 10], 0.908),

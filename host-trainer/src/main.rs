@@ -296,12 +296,7 @@ fn train(config: &Path, seed: Option<u64>, options: RunOptions) -> Result<(), St
         let overtakes = match (m.eval_overtakes, m.eval_sustained_overtakes) {
             (Some(o), Some(s)) => format!(
                 ", {o} overtakes ({s} sustained{}){}",
-                match m
-                    .eval_overtakes_by_gate
-                    .iter()
-                    .filter(|g| g.sustained > 0)
-                    .count()
-                {
+                match sitl::eval::GateOvertakes::gates_held(&m.eval_overtakes_by_gate) {
                     0 => String::new(),
                     n => format!(" at {n} gates"),
                 },

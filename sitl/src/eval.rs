@@ -186,6 +186,12 @@ pub struct GateOvertakes {
 }
 
 impl GateOvertakes {
+    /// The gates of `by_gate` at which at least one overtake was sustained: where the ego
+    /// holds its passes, issue "race"'s `min_gates_held`.
+    pub fn gates_held(by_gate: &[Self]) -> usize {
+        by_gate.iter().filter(|g| g.sustained > 0).count()
+    }
+
     /// The per-gate counts of `episodes`, gates without an overtake left out.
     pub fn tally(episodes: &[EpisodeMetrics]) -> Vec<Self> {
         let gates = episodes
@@ -237,10 +243,7 @@ pub struct RaceOutcome {
 impl RaceOutcome {
     /// The gates at which at least one overtake was sustained.
     pub fn gates_held(&self) -> usize {
-        self.overtakes_by_gate
-            .iter()
-            .filter(|g| g.sustained > 0)
-            .count()
+        GateOvertakes::gates_held(&self.overtakes_by_gate)
     }
 }
 
@@ -493,11 +496,7 @@ impl Report {
             }
         }
         if !self.overtakes_by_gate.is_empty() {
-            let held_at = self
-                .overtakes_by_gate
-                .iter()
-                .filter(|g| g.sustained > 0)
-                .count();
+            let held_at = GateOvertakes::gates_held(&self.overtakes_by_gate);
             out += &format!(
                 "\novertakes by the gate the ego flew towards (sustained/all): {}; sustained at {held_at} distinct gate{}",
                 self.overtakes_by_gate

@@ -433,7 +433,7 @@ fn the_race_bar_names_what_a_race_set_misses() {
 /// bar judges the committed `eval.json` files as the trainer judges its referee.
 #[test]
 fn a_race_reports_json_reads_into_its_race_outcome() {
-    use sitl::eval::{EvalConfig, RaceOutcome, Report, evaluate};
+    use sitl::eval::{EvalConfig, RaceOutcome, report};
     use sitl::pilot::PilotSpec;
     let preset = Preset::paper();
     let blob = |name: &str| format!("{}/../policies/{name}", env!("CARGO_MANIFEST_DIR"));
@@ -447,11 +447,7 @@ fn a_race_reports_json_reads_into_its_race_outcome() {
         spawn: None,
         perturbation: sitl::perturb::Perturbation::NONE,
     };
-    let metrics: Vec<_> = evaluate(&ego, Some(&opponent), &config, false)
-        .into_iter()
-        .map(|e| e.metrics)
-        .collect();
-    let report = Report::new(&ego, Some(&opponent), &config, &metrics);
+    let report = report(&ego, Some(&opponent), &config);
     let read: RaceOutcome = serde_json::from_str(&report.to_json()).unwrap();
     assert_eq!(read, RaceOutcome::from(&report));
     assert!(
