@@ -681,9 +681,14 @@ fn the_transplant_stage2_config_is_the_one_that_made_its_race_ego() {
 /// `stage2_transplant.toml` with the faster teacher and its own name and seed, and
 /// `experiments/race_long.toml` (run long2) under another name and seed; the teacher is
 /// `experiments/stage1_long.toml`'s blob, which is `stage1_nominal.toml` with a larger budget.
-/// `configs/stage2.toml` (what `sitl race` flies) is that recipe with the robust teacher,
-/// opponent and draws, and `experiments/stage1_robust_fast.toml` is `configs/stage1.toml`
-/// with 300 more iterations under a wider draw.
+/// `experiments/stage2_robust_fast.toml` (`configs/stage2.toml` until it ranked by the race
+/// bar) is that recipe with the robust teacher, opponent and draws, and
+/// `experiments/stage1_robust_fast.toml` is `experiments/stage1_4500.toml` with 300 more
+/// iterations under a wider draw; `stage1_4500.toml` is `configs/stage1.toml` with 1,500 more
+/// iterations and nothing else. `configs/stage2.toml` (what `sitl race` flies) is
+/// `stage2_robust_fast.toml` from the jittered teacher, from jittered starts, with the
+/// selection that ranks by the race bar, and `experiments/stage2_robust_jitter3.toml` (the run
+/// it repeats) with the race bar in place of the referee's floor.
 #[test]
 fn the_long_stage2_recipe_is_the_transplant_recipe_with_the_long_teacher() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
@@ -710,7 +715,7 @@ fn the_long_stage2_recipe_is_the_transplant_recipe_with_the_long_teacher() {
     stage1_long.run.name = stage1.run.name.clone();
     assert_eq!(stage1_long, stage1);
 
-    let robust = load("stage2.toml");
+    let robust = load("experiments/stage2_robust_fast.toml");
     let mut from_long = long.clone();
     from_long.run.name = robust.run.name.clone();
     from_long.run.seed = robust.run.seed;
@@ -722,10 +727,31 @@ fn the_long_stage2_recipe_is_the_transplant_recipe_with_the_long_teacher() {
         Some("policies/stage1_robust_fast.blob".into());
     assert_eq!(from_long, robust);
     let fast = load("experiments/stage1_robust_fast.toml");
+    let root_4500 = load("experiments/stage1_4500.toml");
+    assert_eq!(fast.run.iterations, root_4500.run.iterations + 300);
+    assert_eq!(fast.randomize_ramp, root_4500.randomize_ramp);
+    assert_eq!(fast.env.randomize_share, root_4500.env.randomize_share);
     let shipped1 = TrainConfig::parse(STAGE1).unwrap();
-    assert_eq!(fast.run.iterations, shipped1.run.iterations + 300);
-    assert_eq!(fast.randomize_ramp, shipped1.randomize_ramp);
-    assert_eq!(fast.env.randomize_share, shipped1.env.randomize_share);
+    assert_eq!(root_4500.run.iterations, shipped1.run.iterations + 1500);
+    assert!(root_4500.only_budget_differs_from(&shipped1));
+
+    let shipped2 = load("stage2.toml");
+    let mut jittered = robust.clone();
+    jittered.env.spawn_jitter = shipped2.env.spawn_jitter.clone();
+    jittered.run.select = shipped2.run.select.clone();
+    jittered.warm_start.as_mut().unwrap().teacher_blob =
+        Some("policies/stage1_robust_jitter3.blob".into());
+    assert_eq!(jittered, shipped2);
+    let select = shipped2.run.select.as_ref().unwrap();
+    assert!(select.race_bar && select.referee_floor.is_none());
+    let mut repeated = load("experiments/stage2_robust_jitter3.toml");
+    let s = repeated.run.select.as_mut().unwrap();
+    assert_eq!(s.referee_floor, Some(0.9));
+    (s.referee_floor, s.race_bar) = (None, true);
+    repeated.run.name = shipped2.run.name.clone();
+    repeated.warm_start.as_mut().unwrap().teacher_blob =
+        Some("policies/stage1_robust_jitter3.blob".into());
+    assert_eq!(repeated, shipped2);
 }
 
 /// `experiments/race_curriculum.toml` is the shipped race recipe at the same budget with one
