@@ -199,10 +199,16 @@
     scene.add(group);
     return group;
   }
+  // A drone's path. Drawn after the scene and before the drones (renderOrder 9; the drones'
+  // parts are 10-13), without writing depth: a gate in front still hides it, but it never
+  // hides a drone, not even its own rotors under the trail it left while descending.
   function makeLine(color, opacity) {
     const g = new THREE.BufferGeometry();
     g.setAttribute('position', new THREE.Float32BufferAttribute(new Float32Array(3), 3));
-    const line = new THREE.LineSegments(g, new THREE.LineBasicMaterial({ color, transparent: opacity < 1, opacity }));
+    const line = new THREE.LineSegments(g, new THREE.LineBasicMaterial({
+      color, transparent: opacity < 1, opacity, depthWrite: false,
+    }));
+    line.renderOrder = 9;
     line.frustumCulled = false;
     scene.add(line);
     return line;
